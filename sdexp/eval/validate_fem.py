@@ -1,0 +1,225 @@
+"""``sdexp experiment=validate_fem``: the simulator against physics.
+
+* Cantilever under its own weight, clamped at x = 0: static tip deflection (dynamic
+  relaxation) and first bending frequency (free vibration) against Euler-Bernoulli, for a
+  refinement series of structured meshes and for a pytetwild mesh at a drone's default
+  element size. Linear tets lock in bending when few span the thickness; the table shows how
+  much, and how it shrinks under refinement.
+* Stiff limit: a near-rigid plate under constant thrust follows the analytic rigid-body motion.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdexp.sim.fem import FemModel, build_fem, rest_quaternions, stable_substep
+from sdexp.sim.integrator import advance
+from sdexp.sim.structured import box_tets, box_tris
+
+EB_ROOT = 1.8751040687  # first root of cos(x) cosh(x) = -1
+
+
+class FreeBody:
+    """A FEM body with no rotors, for validation: run substeps, optionally with pinned
+    vertices (minv = 0) and external nodal forces."""
+
+    def __init__(self, fem: FemModel, safety: float = 0.8, pinned: np.ndarray | None = None):
+        self.fem = fem
+        self.dt = stable_substep(fem, safety)
+        self.x = fem.rest.copy()
+        self.v = np.zeros_like(self.x)
+        d = fem.dim
+        self.q = rest_quaternions(fem.n_elems) if d == 3 else np.zeros((fem.n_elems, 1))
+        self.fe = np.zeros((fem.n_elems, d + 1, d))
+        self.minv = 1.0 / fem.mass
+        if pinned is not None:
+            self.minv[pinned] = 0.0
+        self.ext = np.zeros_like(self.x)
+        self._none_box = np.zeros((0, d))
+        self._no_rotor = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.int64),
+                          np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+    def run(self, n: int, damping: float = 0.0, gravity: float = 0.0) -> int:
+        """n substeps; returns the largest count of inverted elements seen."""
+        f = self.fem
+        inv, _ = advance(n, self.dt, self.x, self.v, self.q, self.fe, f.elems, f.Bm, f.vol, f.mu,
+                         f.lam, f.inc_ptr, f.inc_idx, self.minv, damping, gravity, -np.inf,
+                         self._none_box, self._none_box, 0.0, *self._no_rotor, self.ext,
+                         np.zeros((0, f.dim)))
+        return inv
+
+
+# ------------------------------------------------------------------------------ cantilever
+
+@dataclass
+class Beam:
+    length: float = 1.5
+    thickness: float = 0.225     # the flower's plate thickness
+    width: float = 0.3           # 3D only
+    youngs_modulus: float = 6000.0
+    poisson_ratio: float = 0.3
+    sag: float = 0.01            # Euler-Bernoulli static tip deflection / length (small: linear)
+
+    def second_moment(self, dim: int) -> float:
+        return (self.width if dim == 3 else 1.0) * self.thickness ** 3 / 12
+
+    def modulus(self, dim: int) -> float:
+        """E for a narrow 3D beam, E / (1 - nu^2) in plane strain."""
+        return self.youngs_modulus if dim == 3 else self.youngs_modulus / (1 - self.poisson_ratio ** 2)
+
+    def area(self, dim: int) -> float:
+        return self.thickness * (self.width if dim == 3 else 1.0)
+
+    def density(self, dim: int) -> float:
+        """Chosen so the Euler-Bernoulli tip sag under gravity is ``sag`` x length."""
+        EI = self.modulus(dim) * self.second_moment(dim)
+        return self.sag * self.length * 8 * EI / (self.area(dim) * 9.81 * self.length ** 4)
+
+    def eb_deflection(self) -> float:
+        return self.sag * self.length
+
+    def eb_frequency(self, dim: int) -> float:
+        EI = self.modulus(dim) * self.second_moment(dim)
+        rA = self.density(dim) * self.area(dim)
+        return EB_ROOT ** 2 / (2 * np.pi) * np.sqrt(EI / (rA * self.length ** 4))
+
+    def timoshenko_deflection(self, dim: int) -> float:
+        """EB plus the shear deflection w L^2 / (2 kappa G A), kappa = 5/6 (rectangle)."""
+        G = self.youngs_modulus / (2 * (1 + self.poisson_ratio))
+        w = self.density(dim) * self.area(dim) * 9.81
+        return self.eb_deflection() + w * self.length ** 2 / (2 * (5 / 6) * G * self.area(dim))
+
+
+def structured_beam(beam: Beam, dim: int, layers: int) -> tuple[np.ndarray, np.ndarray]:
+    """``layers`` elements through the thickness, near-cubic elements elsewhere."""
+    h = beam.thickness / layers
+    nx = max(1, round(beam.length / h))
+    if dim == 2:
+        return box_tris((nx, layers), (beam.length, beam.thickness), (0.0, -beam.thickness / 2))
+    nz = max(1, round(beam.width / h))
+    return box_tets((nx, layers, nz), (beam.length, beam.thickness, beam.width),
+                    (0.0, -beam.thickness / 2, -beam.width / 2))
+
+
+def cantilever(beam: Beam, points: np.ndarray, elems: np.ndarray, periods: float = 4.0) -> dict:
+    """Static tip sag and first bending frequency of the beam meshed by (points, elems), which
+    must span x in [0, length]; vertices at x = 0 are clamped."""
+    dim = points.shape[1]
+    density = beam.density(dim)
+    volume = beam.area(dim) * beam.length
+    fem = build_fem(points, elems, density * volume, beam.youngs_modulus, beam.poisson_ratio)
+    pinned = np.flatnonzero(points[:, 0] < 1e-9)
+    body = FreeBody(fem, pinned=pinned)
+    tip = np.flatnonzero(points[:, 0] > beam.length - 1e-9)
+    f_eb = beam.eb_frequency(dim)
+    # dynamic relaxation: mass damping at twice the EB angular frequency decays the first mode
+    # critically (every mode at the same rate)
+    alpha = 2 * 2 * np.pi * f_eb
+    steps = int(np.ceil(12.0 / (alpha / 2) / body.dt))
+    inv = body.run(steps, damping=alpha, gravity=9.81)
+    sag = -float(np.mean(body.x[tip, 1] - points[tip, 1]))
+    # release: undamped free vibration about the rest shape from the sagged shape
+    body.v[:] = 0.0
+    sample = max(1, int(round(1.0 / (60 * f_eb) / body.dt)))
+    n_samples = int(np.ceil(periods * 60))
+    ys = np.empty(n_samples)
+    for k in range(n_samples):
+        inv = max(inv, body.run(sample))
+        ys[k] = np.mean(body.x[tip, 1] - points[tip, 1])
+    f_sim = _frequency(ys - ys.mean(), sample * body.dt)
+    return {
+        "elements": len(elems), "dim": dim,
+        "sag": sag, "sag_eb": beam.eb_deflection(), "sag_timoshenko": beam.timoshenko_deflection(dim),
+        "sag_error": sag / beam.eb_deflection() - 1,
+        "freq": f_sim, "freq_eb": f_eb, "freq_error": f_sim / f_eb - 1,
+        "substep": body.dt, "inverted": int(inv),
+    }
+
+
+def _frequency(y: np.ndarray, dt: float) -> float:
+    """Mean period between upward zero crossings (linear interpolation)."""
+    i = np.flatnonzero((y[:-1] < 0) & (y[1:] >= 0))
+    if len(i) < 2:
+        return float("nan")
+    t = (i + (-y[i]) / (y[i + 1] - y[i])) * dt
+    return 1.0 / float(np.mean(np.diff(t)))
+
+
+# ------------------------------------------------------------------------------ rigid limit
+
+def stiff_plate_under_thrust(thrust: float = 6.0, seconds: float = 0.3, youngs_modulus: float = 2e5) -> dict:
+    """A stiff 1 m x 0.1 m x 1 m plate of 1 kg with four equal upward forces at its corners
+    (applied as nodal forces on the top-face corner patches): rigid theory says it rises with
+    a = 4 T / m - g, keeps its orientation and does not deform."""
+    pts, tets = box_tets((6, 1, 6), (1.0, 0.1, 1.0), (-0.5, -0.05, -0.5))
+    fem = build_fem(pts, tets, 1.0, youngs_modulus, 0.3)
+    body = FreeBody(fem)
+    top = pts[:, 1] > 0.04
+    corners = [np.flatnonzero(top & (np.abs(pts[:, 0] - sx * 0.5) < 1e-9) & (np.abs(pts[:, 2] - sz * 0.5) < 1e-9))
+               for sx in (-1, 1) for sz in (-1, 1)]
+    for c in corners:
+        body.ext[c, 1] += thrust / len(c)
+    steps = int(round(seconds / body.dt))
+    body.run(steps, gravity=9.81)
+    t = steps * body.dt
+    com = (fem.mass[:, None] * body.x).sum(0) / fem.mass.sum()
+    a = 4 * thrust / fem.mass.sum() - 9.81
+    return {"time": t, "rise": float(com[1]), "rise_rigid": 0.5 * a * t * t,
+            "drift": float(np.hypot(com[0], com[2])),
+            "max_deformation": float(np.abs(body.x - pts - com).max())}
+
+
+# ------------------------------------------------------------------------------ runner
+
+def run(cfg, out_dir: Path) -> dict:
+    from sdexp.eval.plots import refinement_plot
+
+    p = dict(cfg.experiment.params)
+    beam = Beam(**p.get("beam", {}))
+    rows = []
+    for dim in (2, 3):
+        for layers in p.get("layers_2d" if dim == 2 else "layers_3d", [1, 2, 3, 4]):
+            pts, el = structured_beam(beam, dim, layers)
+            res = cantilever(beam, pts, el)
+            rows.append({"mesh": f"structured {dim}D", "layers": layers, "edge": beam.thickness / layers, **res})
+            print(f"  {dim}D {layers} layers, {len(el)} elements: sag error {res['sag_error']:+.1%}, "
+                  f"frequency error {res['freq_error']:+.1%}")
+    if p.get("drone_edge_length"):
+        from sdexp.sim.tetmesh import tet_mesh
+        edge = float(p["drone_edge_length"])
+        v, f = _beam_surface(beam)
+        pts, el = tet_mesh(v, f, edge)
+        res = cantilever(beam, pts, el)
+        rows.append({"mesh": "pytetwild 3D", "layers": np.nan, "edge": edge, **res})
+        print(f"  pytetwild at edge {edge} m, {len(el)} tets: sag error {res['sag_error']:+.1%}, "
+              f"frequency error {res['freq_error']:+.1%}")
+    table = pd.DataFrame(rows)
+    table.to_csv(out_dir / "cantilever.csv", index=False)
+    refinement_plot(table, out_dir / "cantilever.png")
+    rigid = stiff_plate_under_thrust()
+    pd.DataFrame([rigid]).to_csv(out_dir / "stiff_limit.csv", index=False)
+    metrics = {"rigid_rise_error": rigid["rise"] / rigid["rise_rigid"] - 1}
+    for r in rows:
+        key = f"{r['mesh'].replace(' ', '_')}_{'' if np.isnan(r['layers']) else int(r['layers'])}"
+        metrics[f"sag_error_{key}"] = r["sag_error"]
+        metrics[f"freq_error_{key}"] = r["freq_error"]
+    return metrics
+
+
+def _beam_surface(beam: Beam) -> tuple[np.ndarray, np.ndarray]:
+    """Closed outward triangle surface of the 3D beam box."""
+    L, t, w = beam.length, beam.thickness, beam.width
+    v = np.array([[x, y, z] for x in (0, L) for y in (-t / 2, t / 2) for z in (-w / 2, w / 2)], float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    f = []
+    for a, b, c, d in quads:
+        f += [(a, b, c), (a, c, d)]
+    f = np.array(f)
+    # orient outward: the signed volume must be positive
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    if np.einsum("ij,ij->i", p0, np.cross(p1, p2)).sum() < 0:
+        f = f[:, ::-1]
+    return v, f

@@ -1,0 +1,164 @@
+"""build_drone(cfg): shape -> mesh (cached) -> FEM model, rotor patches and IMU patches."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sdexp.cache import cached_arrays, key_of
+from sdexp.errors import UserError
+from sdexp.sim.fem import FemModel, build_fem
+from sdexp.sim.sensors import ImuPatches, SensorLayout, build_imu_patches
+from sdexp.sim.shape import Shape
+
+MESH_FORMAT = 1
+
+
+@dataclass
+class RotorPatches:
+    """CSR lists: the surface faces whose area-weighted normal is the thrust direction, and
+    the vertices the thrust is spread over (equal shares)."""
+    face_ptr: np.ndarray
+    faces: np.ndarray
+    vert_ptr: np.ndarray
+    verts: np.ndarray
+    weights: np.ndarray
+    anchors: np.ndarray   # (m, dim) rest anchor points
+
+    @property
+    def count(self) -> int:
+        return len(self.face_ptr) - 1
+
+
+@dataclass
+class Drone:
+    name: str
+    fem: FemModel
+    boundary: np.ndarray      # (nf, dim) outward-oriented surface triangles / segments
+    rotors: RotorPatches
+    imus: ImuPatches
+    layout: SensorLayout
+    max_thrust: float
+    damping: float            # mass-proportional damping coefficient (1/s)
+
+    @property
+    def dim(self) -> int:
+        return self.fem.dim
+
+    @property
+    def num_rotors(self) -> int:
+        return self.rotors.count
+
+
+def drone_names() -> list[str]:
+    from pathlib import Path
+    conf = Path(__file__).resolve().parents[2] / "conf" / "drone"
+    return sorted(p.stem for p in conf.glob("*.yaml"))
+
+
+def make_shape(cfg) -> Shape:
+    from sdexp.sim.shapes import SHAPES
+    if cfg.shape not in SHAPES:
+        raise UserError(f"drone.shape = {cfg.shape!r} is unknown: choose one of {sorted(SHAPES)}")
+    try:
+        shape = SHAPES[cfg.shape](list(cfg.size), cfg.thickness, int(cfg.num_rotors),
+                                  int(cfg.num_sensors), dict(cfg.params))
+    except ValueError as err:
+        raise UserError(f"drone {cfg.name}: {err}") from None
+    if len(shape.rotors) != cfg.num_rotors:
+        raise UserError(f"drone.num_rotors = {cfg.num_rotors} but the {cfg.shape} shape places "
+                        f"{len(shape.rotors)} rotors")
+    if len(shape.imus) != cfg.num_sensors:
+        raise UserError(f"drone.num_sensors = {cfg.num_sensors} but the {cfg.shape} shape places "
+                        f"{len(shape.imus)} peripheral IMUs")
+    return shape
+
+
+def mesh_shape(shape: Shape, edge_length: float, stop_energy: float, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
+    payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
+               "h": shape.holes.round(12).tolist(), "edge": edge_length,
+               "stop": stop_energy if shape.dim == 3 else None}
+
+    def make() -> dict[str, np.ndarray]:
+        if shape.dim == 3:
+            from sdexp.sim.tetmesh import tet_mesh
+            pts, el = tet_mesh(shape.vertices, shape.faces, edge_length, stop_energy)
+        else:
+            from sdexp.sim.trimesh import tri_mesh
+            pts, el = tri_mesh(shape.vertices, shape.faces, shape.holes, edge_length)
+        return {"points": pts, "elems": el}
+
+    arrays = cached_arrays(cache_dir, key_of(f"mesh{shape.dim}d", MESH_FORMAT, payload), make)
+    return arrays["points"], arrays["elems"].astype(np.int32)
+
+
+def boundary_faces(elems: np.ndarray) -> np.ndarray:
+    """Faces that belong to one element only, oriented outward (elements positively oriented)."""
+    if elems.shape[1] == 4:
+        a, b, c, d = elems.T
+        faces = np.concatenate([np.c_[b, c, d], np.c_[a, d, c], np.c_[a, b, d], np.c_[a, c, b]])
+    else:
+        a, b, c = elems.T
+        faces = np.concatenate([np.c_[a, b], np.c_[b, c], np.c_[c, a]])
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[counts[inverse.ravel()] == 1]
+
+
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted outward normals (3D: cross product / 2; 2D: rotated segment)."""
+    if faces.shape[1] == 3:
+        p0, p1, p2 = (points[faces[:, k]] for k in range(3))
+        return 0.5 * np.cross(p1 - p0, p2 - p0)
+    d = points[faces[:, 1]] - points[faces[:, 0]]
+    return np.c_[d[:, 1], -d[:, 0]]
+
+
+def patch_faces(points: np.ndarray, faces: np.ndarray, anchor: np.ndarray, normal: np.ndarray,
+                radius: float) -> np.ndarray:
+    """Indices of boundary faces on the anchor's side (normal within 60 deg) whose centroid
+    lies within ``radius``; at least the nearest such face."""
+    n = face_normals(points, faces)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    side = n @ normal > 0.5
+    dist = np.linalg.norm(points[faces].mean(axis=1) - anchor, axis=1)
+    pick = np.flatnonzero(side & (dist <= radius))
+    if len(pick) == 0:
+        cand = np.flatnonzero(side)
+        pick = cand[[np.argmin(dist[cand])]] if len(cand) else np.array([], dtype=int)
+    return pick
+
+
+def _csr(lists: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    ptr = np.concatenate([[0], np.cumsum([len(x) for x in lists])]).astype(np.int64)
+    flat = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int64)
+    return ptr, flat
+
+
+def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatches:
+    face_lists, vert_lists = [], []
+    for r, (a, n) in enumerate(zip(anchors, normals)):
+        idx = patch_faces(points, boundary, a, n, radius)
+        if len(idx) == 0:
+            raise UserError(f"drone {name}: rotor {r} finds no surface facing {n.round(2).tolist()}")
+        face_lists.append(boundary[idx])
+        vert_lists.append(np.unique(boundary[idx]))
+    face_ptr = np.concatenate([[0], np.cumsum([len(f) for f in face_lists])]).astype(np.int64)
+    faces = np.concatenate(face_lists).astype(np.int64)
+    if faces.shape[1] == 2:  # keep a (k, 3) array for the numba kernel's single signature
+        faces = np.c_[faces, faces[:, :1]]
+    vert_ptr, verts = _csr(vert_lists)
+    weights = np.concatenate([np.full(len(v), 1.0 / len(v)) for v in vert_lists])
+    return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), weights, np.asarray(anchors))
+
+
+def build_drone(cfg, cache_dir: str) -> Drone:
+    """cfg is the ``drone`` config node (validated)."""
+    shape = make_shape(cfg)
+    points, elems = mesh_shape(shape, cfg.mesh.edge_length, cfg.mesh.stop_energy, cache_dir)
+    fem = build_fem(points, elems, cfg.mass, cfg.youngs_modulus, cfg.poisson_ratio)
+    boundary = boundary_faces(elems)
+    rotors = build_rotors(points, boundary, shape.rotors, shape.rotor_normals, cfg.rotor_radius, cfg.name)
+    imus, layout = build_imu_patches(points, boundary, shape, cfg.imu_radius, cfg.name)
+    return Drone(cfg.name, fem, boundary, rotors, imus, layout, float(cfg.max_thrust),
+                 float(cfg.damping))

@@ -1,0 +1,256 @@
+"""Co-rotated linear elasticity (Mueller & Gross 2004) on linear tets (3D) and triangles (2D).
+
+The element force is the linear-elastic force in the element's rotated frame: with
+F = Ds Dm^-1, R = polar(F), eps = sym(R^T F) - I and P = R (2 mu eps + lam tr(eps) I),
+the nodal forces are -V P Dm^-T. This is the warped-stiffness force -R K (R^T x - X) of the
+paper's simulator, written in stress form (fewer flops than the 12x12 matrix).
+
+Rotations come from the warm-started quaternion iteration of Mueller et al. 2016 ("A robust
+method to extract the rotational part of deformations"): it stays a proper rotation for
+inverted elements and, warm-started from the last substep, needs one or two iterations.
+
+2D uses plane strain with an out-of-plane depth of 1 m; the rotation is exact (atan2).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+POLAR_ITERATIONS = 2
+
+
+@dataclass
+class FemModel:
+    dim: int
+    rest: np.ndarray      # (nv, dim) rest positions
+    elems: np.ndarray     # (ne, dim+1) int32, positively oriented
+    Bm: np.ndarray        # (ne, dim, dim) inverse rest edge matrix Dm^-1
+    vol: np.ndarray       # (ne,) rest volume (2D: area x 1 m depth)
+    mass: np.ndarray      # (nv,) lumped mass
+    mu: float
+    lam: float
+    inc_ptr: np.ndarray   # (nv+1,) CSR: vertex -> slots e*(dim+1)+local in the element force array
+    inc_idx: np.ndarray
+
+    @property
+    def n_elems(self) -> int:
+        return len(self.elems)
+
+
+def lame(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
+    """(mu, lambda); the same formulas serve 3D and 2D plane strain."""
+    E, nu = youngs_modulus, poisson_ratio
+    return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+
+
+def signed_volumes(points: np.ndarray, elems: np.ndarray) -> np.ndarray:
+    d = points.shape[1]
+    D = np.stack([points[elems[:, k + 1]] - points[elems[:, 0]] for k in range(d)], axis=-1)
+    return np.linalg.det(D) / (6.0 if d == 3 else 2.0)
+
+
+def build_fem(rest: np.ndarray, elems: np.ndarray, total_mass: float,
+              youngs_modulus: float, poisson_ratio: float) -> FemModel:
+    """Precompute rest quantities; mass is lumped evenly to each element's vertices."""
+    rest = np.ascontiguousarray(rest, dtype=np.float64)
+    elems = np.ascontiguousarray(elems, dtype=np.int32)
+    d = rest.shape[1]
+    Dm = np.stack([rest[elems[:, k + 1]] - rest[elems[:, 0]] for k in range(d)], axis=-1)
+    vol = np.linalg.det(Dm) / (6.0 if d == 3 else 2.0)
+    if np.any(vol <= 0):
+        raise ValueError(f"{int(np.sum(vol <= 0))} elements are inverted or degenerate at rest")
+    Bm = np.ascontiguousarray(np.linalg.inv(Dm))
+    density = total_mass / vol.sum()
+    mass = np.zeros(len(rest))
+    np.add.at(mass, elems.ravel(), np.repeat(density * vol / (d + 1), d + 1))
+    if np.any(mass <= 0):
+        raise ValueError("mesh has vertices that belong to no element")
+    slots = np.arange(elems.size, dtype=np.int64)
+    order = np.argsort(elems.ravel(), kind="stable")
+    counts = np.bincount(elems.ravel(), minlength=len(rest))
+    inc_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    mu, lam = lame(youngs_modulus, poisson_ratio)
+    return FemModel(d, rest, elems, Bm, vol, mass, mu, lam, inc_ptr, slots[order])
+
+
+# --------------------------------------------------------------------------------------------
+# Element kernels. Scalar locals only: per-element temporary arrays inside a parallel loop
+# halve the speed (DESIGN.md).
+# --------------------------------------------------------------------------------------------
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def elastic_forces_3d(x, elems, Bm, vol, mu, lam, q, fe):
+    """Write the four nodal forces of every tet into fe (ne, 4, 3); update the warm-start
+    quaternions q (ne, 4). Returns the number of inverted tets (det F <= 0)."""
+    ne = elems.shape[0]
+    inverted = 0
+    for e in nb.prange(ne):
+        i0 = elems[e, 0]; i1 = elems[e, 1]; i2 = elems[e, 2]; i3 = elems[e, 3]
+        x0 = x[i0, 0]; y0 = x[i0, 1]; z0 = x[i0, 2]
+        d1x = x[i1, 0] - x0; d1y = x[i1, 1] - y0; d1z = x[i1, 2] - z0
+        d2x = x[i2, 0] - x0; d2y = x[i2, 1] - y0; d2z = x[i2, 2] - z0
+        d3x = x[i3, 0] - x0; d3y = x[i3, 1] - y0; d3z = x[i3, 2] - z0
+        b00 = Bm[e, 0, 0]; b01 = Bm[e, 0, 1]; b02 = Bm[e, 0, 2]
+        b10 = Bm[e, 1, 0]; b11 = Bm[e, 1, 1]; b12 = Bm[e, 1, 2]
+        b20 = Bm[e, 2, 0]; b21 = Bm[e, 2, 1]; b22 = Bm[e, 2, 2]
+        # F = Ds Bm, Ds columns are the edge vectors d1, d2, d3
+        f00 = d1x * b00 + d2x * b10 + d3x * b20
+        f01 = d1x * b01 + d2x * b11 + d3x * b21
+        f02 = d1x * b02 + d2x * b12 + d3x * b22
+        f10 = d1y * b00 + d2y * b10 + d3y * b20
+        f11 = d1y * b01 + d2y * b11 + d3y * b21
+        f12 = d1y * b02 + d2y * b12 + d3y * b22
+        f20 = d1z * b00 + d2z * b10 + d3z * b20
+        f21 = d1z * b01 + d2z * b11 + d3z * b21
+        f22 = d1z * b02 + d2z * b12 + d3z * b22
+        det = (f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20)
+               + f02 * (f10 * f21 - f11 * f20))
+        if det <= 0.0:
+            inverted += 1
+        qw = q[e, 0]; qx = q[e, 1]; qy = q[e, 2]; qz = q[e, 3]
+        r00 = 1.0; r01 = 0.0; r02 = 0.0; r10 = 0.0; r11 = 1.0; r12 = 0.0
+        r20 = 0.0; r21 = 0.0; r22 = 1.0
+        for _ in range(POLAR_ITERATIONS):
+            r00 = 1.0 - 2.0 * (qy * qy + qz * qz); r01 = 2.0 * (qx * qy - qw * qz)
+            r02 = 2.0 * (qx * qz + qw * qy)
+            r10 = 2.0 * (qx * qy + qw * qz); r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+            r12 = 2.0 * (qy * qz - qw * qx)
+            r20 = 2.0 * (qx * qz - qw * qy); r21 = 2.0 * (qy * qz + qw * qx)
+            r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+            # omega = sum_i R_col_i x F_col_i / |sum_i R_col_i . F_col_i|
+            wx = (r10 * f20 - r20 * f10) + (r11 * f21 - r21 * f11) + (r12 * f22 - r22 * f12)
+            wy = (r20 * f00 - r00 * f20) + (r21 * f01 - r01 * f21) + (r22 * f02 - r02 * f22)
+            wz = (r00 * f10 - r10 * f00) + (r01 * f11 - r11 * f01) + (r02 * f12 - r12 * f02)
+            den = abs(r00 * f00 + r10 * f10 + r20 * f20 + r01 * f01 + r11 * f11 + r21 * f21
+                      + r02 * f02 + r12 * f12 + r22 * f22) + 1e-9
+            wx /= den; wy /= den; wz /= den
+            # q <- normalize((1, omega/2) * q): the first-order rotation update, branch- and
+            # trig-free; it converges to the same fixed point (omega = 0 at the polar rotation)
+            ax = 0.5 * wx; ay = 0.5 * wy; az = 0.5 * wz
+            nw = qw - ax * qx - ay * qy - az * qz
+            nx = qx + ax * qw + ay * qz - az * qy
+            ny = qy - ax * qz + ay * qw + az * qx
+            nz = qz + ax * qy - ay * qx + az * qw
+            inv = 1.0 / np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+            qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv
+        r00 = 1.0 - 2.0 * (qy * qy + qz * qz); r01 = 2.0 * (qx * qy - qw * qz)
+        r02 = 2.0 * (qx * qz + qw * qy)
+        r10 = 2.0 * (qx * qy + qw * qz); r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+        r12 = 2.0 * (qy * qz - qw * qx)
+        r20 = 2.0 * (qx * qz - qw * qy); r21 = 2.0 * (qy * qz + qw * qx)
+        r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+        q[e, 0] = qw; q[e, 1] = qx; q[e, 2] = qy; q[e, 3] = qz
+        # S = R^T F; strain = sym(S) - I
+        s00 = r00 * f00 + r10 * f10 + r20 * f20
+        s11 = r01 * f01 + r11 * f11 + r21 * f21
+        s22 = r02 * f02 + r12 * f12 + r22 * f22
+        s01 = 0.5 * ((r00 * f01 + r10 * f11 + r20 * f21) + (r01 * f00 + r11 * f10 + r21 * f20))
+        s02 = 0.5 * ((r00 * f02 + r10 * f12 + r20 * f22) + (r02 * f00 + r12 * f10 + r22 * f20))
+        s12 = 0.5 * ((r01 * f02 + r11 * f12 + r21 * f22) + (r02 * f01 + r12 * f11 + r22 * f21))
+        e00 = s00 - 1.0; e11 = s11 - 1.0; e22 = s22 - 1.0
+        tr = lam * (e00 + e11 + e22)
+        m2 = 2.0 * mu
+        t00 = m2 * e00 + tr; t11 = m2 * e11 + tr; t22 = m2 * e22 + tr
+        t01 = m2 * s01; t02 = m2 * s02; t12 = m2 * s12
+        # P = R T, scaled by -V
+        V = -vol[e]
+        p00 = V * (r00 * t00 + r01 * t01 + r02 * t02)
+        p01 = V * (r00 * t01 + r01 * t11 + r02 * t12)
+        p02 = V * (r00 * t02 + r01 * t12 + r02 * t22)
+        p10 = V * (r10 * t00 + r11 * t01 + r12 * t02)
+        p11 = V * (r10 * t01 + r11 * t11 + r12 * t12)
+        p12 = V * (r10 * t02 + r11 * t12 + r12 * t22)
+        p20 = V * (r20 * t00 + r21 * t01 + r22 * t02)
+        p21 = V * (r20 * t01 + r21 * t11 + r22 * t12)
+        p22 = V * (r20 * t02 + r21 * t12 + r22 * t22)
+        # H = P Bm^T: column j is the force on vertex j+1
+        h00 = p00 * b00 + p01 * b01 + p02 * b02
+        h10 = p10 * b00 + p11 * b01 + p12 * b02
+        h20 = p20 * b00 + p21 * b01 + p22 * b02
+        h01 = p00 * b10 + p01 * b11 + p02 * b12
+        h11 = p10 * b10 + p11 * b11 + p12 * b12
+        h21 = p20 * b10 + p21 * b11 + p22 * b12
+        h02 = p00 * b20 + p01 * b21 + p02 * b22
+        h12 = p10 * b20 + p11 * b21 + p12 * b22
+        h22 = p20 * b20 + p21 * b21 + p22 * b22
+        fe[e, 1, 0] = h00; fe[e, 1, 1] = h10; fe[e, 1, 2] = h20
+        fe[e, 2, 0] = h01; fe[e, 2, 1] = h11; fe[e, 2, 2] = h21
+        fe[e, 3, 0] = h02; fe[e, 3, 1] = h12; fe[e, 3, 2] = h22
+        fe[e, 0, 0] = -(h00 + h01 + h02)
+        fe[e, 0, 1] = -(h10 + h11 + h12)
+        fe[e, 0, 2] = -(h20 + h21 + h22)
+    return inverted
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def elastic_forces_2d(x, elems, Bm, vol, mu, lam, q, fe):
+    """Triangle version of elastic_forces_3d; q (ne, 1) holds nothing (the 2D rotation is
+    exact) and is kept for one signature."""
+    ne = elems.shape[0]
+    inverted = 0
+    for e in nb.prange(ne):
+        i0 = elems[e, 0]; i1 = elems[e, 1]; i2 = elems[e, 2]
+        d1x = x[i1, 0] - x[i0, 0]; d1y = x[i1, 1] - x[i0, 1]
+        d2x = x[i2, 0] - x[i0, 0]; d2y = x[i2, 1] - x[i0, 1]
+        b00 = Bm[e, 0, 0]; b01 = Bm[e, 0, 1]; b10 = Bm[e, 1, 0]; b11 = Bm[e, 1, 1]
+        f00 = d1x * b00 + d2x * b10; f01 = d1x * b01 + d2x * b11
+        f10 = d1y * b00 + d2y * b10; f11 = d1y * b01 + d2y * b11
+        if f00 * f11 - f01 * f10 <= 0.0:
+            inverted += 1
+        th = np.arctan2(f10 - f01, f00 + f11)
+        c = np.cos(th); s = np.sin(th)
+        # S = R^T F with R = [[c, -s], [s, c]]
+        s00 = c * f00 + s * f10; s11 = -s * f01 + c * f11
+        s01 = 0.5 * ((c * f01 + s * f11) + (-s * f00 + c * f10))
+        e00 = s00 - 1.0; e11 = s11 - 1.0
+        tr = lam * (e00 + e11)
+        t00 = 2.0 * mu * e00 + tr; t11 = 2.0 * mu * e11 + tr; t01 = 2.0 * mu * s01
+        V = -vol[e]
+        p00 = V * (c * t00 - s * t01); p01 = V * (c * t01 - s * t11)
+        p10 = V * (s * t00 + c * t01); p11 = V * (s * t01 + c * t11)
+        h00 = p00 * b00 + p01 * b01; h10 = p10 * b00 + p11 * b01
+        h01 = p00 * b10 + p01 * b11; h11 = p10 * b10 + p11 * b11
+        fe[e, 1, 0] = h00; fe[e, 1, 1] = h10
+        fe[e, 2, 0] = h01; fe[e, 2, 1] = h11
+        fe[e, 0, 0] = -(h00 + h01); fe[e, 0, 1] = -(h10 + h11)
+    return inverted
+
+
+def elastic_forces(model: FemModel, x: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
+    """Total elastic force on every vertex (nv, dim): the reference path for tests and the
+    stability estimate; the simulator's loop fuses this with integration."""
+    d = model.dim
+    if q is None:
+        q = rest_quaternions(model.n_elems) if d == 3 else np.zeros((model.n_elems, 1))
+    fe = np.zeros((model.n_elems, d + 1, d))
+    kernel = elastic_forces_3d if d == 3 else elastic_forces_2d
+    kernel(x, model.elems, model.Bm, model.vol, model.mu, model.lam, q, fe)
+    f = np.zeros_like(x)
+    np.add.at(f, model.elems.ravel(), fe.reshape(-1, d))
+    return f
+
+
+def rest_quaternions(n: int) -> np.ndarray:
+    q = np.zeros((n, 4))
+    q[:, 0] = 1.0
+    return q
+
+
+def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: int = 0) -> float:
+    """safety x 2 / omega_max, omega_max^2 = largest eigenvalue of M^-1 K at rest (power
+    iteration on the linearised force). Symplectic Euler is stable below 2 / omega_max."""
+    rng = np.random.default_rng(seed)
+    d = model.dim
+    u = rng.standard_normal(model.rest.shape)
+    lam_max = 0.0
+    eps = 1e-6 * np.ptp(model.rest, axis=0).max()
+    for _ in range(iterations):
+        u /= np.linalg.norm(u)
+        Ku = -elastic_forces(model, model.rest + eps * u) / eps
+        w = Ku / model.mass[:, None]
+        lam_max = float(np.sum(u * w))
+        u = w
+    del d
+    return safety * 2.0 / np.sqrt(1.05 * lam_max)  # 5% margin on the power-iteration estimate

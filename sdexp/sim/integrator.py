@@ -1,0 +1,143 @@
+"""The explicit substep: gather element forces, add rotor thrust and gravity, apply
+mass-proportional damping, step with symplectic Euler, resolve contact with the ground and
+static boxes. Everything here runs inside numba; one call advances a whole control step.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from sdexp.sim.fem import elastic_forces_2d, elastic_forces_3d
+
+
+@nb.njit(cache=True, fastmath=True)
+def rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs):
+    """Thrust of rotor r acts along the area-weighted normal of its bound surface triangles
+    (3D) or segments (2D), spread over its bound vertices by ``weights``.
+    Writes the unit directions into dirs (m, dim) and the forces into ext (patch rows only)."""
+    dim = x.shape[1]
+    m = thrust.shape[0]
+    for r in range(m):
+        for k in range(vert_ptr[r], vert_ptr[r + 1]):
+            for c in range(dim):
+                ext[verts[k], c] = 0.0
+    for r in range(m):
+        nx = 0.0; ny = 0.0; nz = 0.0
+        for k in range(tri_ptr[r], tri_ptr[r + 1]):
+            a = tris[k, 0]; b = tris[k, 1]
+            if dim == 3:
+                c = tris[k, 2]
+                ux = x[b, 0] - x[a, 0]; uy = x[b, 1] - x[a, 1]; uz = x[b, 2] - x[a, 2]
+                wx = x[c, 0] - x[a, 0]; wy = x[c, 1] - x[a, 1]; wz = x[c, 2] - x[a, 2]
+                nx += uy * wz - uz * wy; ny += uz * wx - ux * wz; nz += ux * wy - uy * wx
+            else:
+                # outward normal of a counter-clockwise boundary segment a->b
+                nx += x[b, 1] - x[a, 1]; ny -= x[b, 0] - x[a, 0]
+        inv = 1.0 / np.sqrt(nx * nx + ny * ny + nz * nz + 1e-300)
+        nx *= inv; ny *= inv; nz *= inv
+        dirs[r, 0] = nx; dirs[r, 1] = ny
+        if dim == 3:
+            dirs[r, 2] = nz
+        for k in range(vert_ptr[r], vert_ptr[r + 1]):
+            i = verts[k]
+            f = thrust[r] * weights[k]
+            ext[i, 0] += f * nx; ext[i, 1] += f * ny
+            if dim == 3:
+                ext[i, 2] += f * nz
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping, gravity,
+              ground, boxes_min, boxes_max, friction):
+    """Symplectic Euler with implicit mass-proportional damping, then contact projection.
+    ``ground`` is -inf when there is no ground. Returns the largest squared speed."""
+    nv, dim = x.shape
+    per = fe.shape[1]
+    nb_box = boxes_min.shape[0]
+    vmax2 = 0.0
+    scale = 1.0 / (1.0 + dt * damping)
+    for i in nb.prange(nv):
+        fx = ext[i, 0]; fy = ext[i, 1]; fz = 0.0
+        if dim == 3:
+            fz = ext[i, 2]
+        for k in range(inc_ptr[i], inc_ptr[i + 1]):
+            s = inc_idx[k]
+            e = s // per; j = s - e * per
+            fx += fe[e, j, 0]; fy += fe[e, j, 1]
+            if dim == 3:
+                fz += fe[e, j, 2]
+        mi = minv[i]  # 0 pins the vertex (clamped supports in the validation cases)
+        g = gravity if mi > 0.0 else 0.0
+        vx = (v[i, 0] + dt * fx * mi) * scale
+        vy = (v[i, 1] + dt * (fy * mi - g)) * scale
+        vz = 0.0
+        if dim == 3:
+            vz = (v[i, 2] + dt * fz * mi) * scale
+        px = x[i, 0] + dt * vx; py = x[i, 1] + dt * vy; pz = 0.0
+        if dim == 3:
+            pz = x[i, 2] + dt * vz
+        # contact: project out along the normal, cancel the inward normal velocity and take
+        # Coulomb friction off the tangential velocity
+        if py < ground:
+            py = ground
+            if vy < 0.0:
+                vt = np.sqrt(vx * vx + vz * vz)
+                keep = max(0.0, 1.0 - friction * (-vy) / (vt + 1e-12))
+                vx *= keep; vz *= keep; vy = 0.0
+        for b in range(nb_box):
+            inside = px > boxes_min[b, 0] and px < boxes_max[b, 0] and \
+                py > boxes_min[b, 1] and py < boxes_max[b, 1]
+            if dim == 3:
+                inside = inside and pz > boxes_min[b, 2] and pz < boxes_max[b, 2]
+            if inside:
+                best = 1e300; axis = 0; side = 0.0
+                for c in range(dim):
+                    p = px if c == 0 else (py if c == 1 else pz)
+                    lo = p - boxes_min[b, c]; hi = boxes_max[b, c] - p
+                    if lo < best:
+                        best = lo; axis = c; side = -1.0
+                    if hi < best:
+                        best = hi; axis = c; side = 1.0
+                vn = vx if axis == 0 else (vy if axis == 1 else vz)
+                if axis == 0:
+                    px += side * best
+                elif axis == 1:
+                    py += side * best
+                else:
+                    pz += side * best
+                if vn * side < 0.0:
+                    t2 = vx * vx + vy * vy + vz * vz - vn * vn
+                    keep = max(0.0, 1.0 - friction * abs(vn) / (np.sqrt(max(t2, 0.0)) + 1e-12))
+                    vx *= keep; vy *= keep; vz *= keep
+                    if axis == 0:
+                        vx = 0.0
+                    elif axis == 1:
+                        vy = 0.0
+                    else:
+                        vz = 0.0
+        x[i, 0] = px; x[i, 1] = py
+        v[i, 0] = vx; v[i, 1] = vy
+        if dim == 3:
+            x[i, 2] = pz; v[i, 2] = vz
+        vmax2 = max(vmax2, vx * vx + vy * vy + vz * vz)
+    return vmax2
+
+
+@nb.njit(cache=True)
+def advance(n_sub, dt, x, v, q, fe, elems, Bm, vol, mu, lam, inc_ptr, inc_idx, minv, damping,
+            gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
+            weights, thrust, ext, dirs):
+    """Run n_sub substeps. Returns (max inverted elements seen, max squared speed)."""
+    worst = 0
+    vmax2 = 0.0
+    dim = x.shape[1]
+    for _ in range(n_sub):
+        if dim == 3:
+            inv = elastic_forces_3d(x, elems, Bm, vol, mu, lam, q, fe)
+        else:
+            inv = elastic_forces_2d(x, elems, Bm, vol, mu, lam, q, fe)
+        worst = max(worst, inv)
+        rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs)
+        vmax2 = max(vmax2, integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping,
+                                     gravity, ground, boxes_min, boxes_max, friction))
+    return worst, vmax2

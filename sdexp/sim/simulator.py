@@ -1,0 +1,124 @@
+"""Simulator: one ``step(u)`` advances one control interval (10 ms) in explicit substeps and
+returns the (noisy, as configured) IMU readings. An episode that blows up ends with a recorded
+failure reason; nothing raises.
+
+Actuation: the command is clipped to [-max_thrust, max_thrust], held back by the output delay
+(a FIFO of whole control steps), perturbed by Gaussian rotor noise, and applied along each
+rotor patch's current surface normal for the whole interval.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from sdexp.sim.drone import Drone
+from sdexp.sim.fem import rest_quaternions, stable_substep
+from sdexp.sim.integrator import advance
+from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
+
+
+@dataclass
+class Failure:
+    reason: str      # inverted_element | non_finite | runaway_speed | runaway_extent
+    time: float      # survival time (s)
+    detail: str = ""
+
+
+class Simulator:
+    def __init__(self, drone: Drone, sim_cfg, noise_cfg, seed: int = 0):
+        self.drone = drone
+        self.cfg = sim_cfg
+        self.noise = noise_cfg
+        self.rng = np.random.default_rng(seed)
+        fem = drone.fem
+        dt_stable = stable_substep(fem, sim_cfg.stability_safety)
+        dt_max = sim_cfg.substep if sim_cfg.substep is not None else dt_stable
+        self.n_sub = int(np.ceil(sim_cfg.control_dt / dt_max - 1e-9))
+        self.dt = sim_cfg.control_dt / self.n_sub
+        self.stable_limit = dt_stable / sim_cfg.stability_safety
+        d = fem.dim
+        self._minv = 1.0 / fem.mass
+        self._fe = np.zeros((fem.n_elems, d + 1, d))
+        self._ext = np.zeros_like(fem.rest)
+        self._dirs = np.zeros((drone.num_rotors, d))
+        obstacles = list(sim_cfg.obstacles)
+        self._bmin = np.array([list(b.min) for b in obstacles], dtype=float).reshape(-1, d)
+        self._bmax = np.array([list(b.max) for b in obstacles], dtype=float).reshape(-1, d)
+        self._ground = -np.inf if sim_cfg.ground is None else float(sim_cfg.ground)
+        self._delay_steps = int(round(noise_cfg.delay / sim_cfg.control_dt)) if noise_cfg.enabled else 0
+        self._rest_extent = np.ptp(fem.rest, axis=0).max()
+        numba.set_num_threads(min(sim_cfg.threads, numba.config.NUMBA_NUM_THREADS))
+        self.reset()
+
+    # -------------------------------------------------------------------------------- state
+    def reset(self, position=None) -> Readings:
+        fem = self.drone.fem
+        self.x = fem.rest.copy()
+        if position is not None:
+            self.x += np.asarray(position, dtype=float)
+        self.v = np.zeros_like(self.x)
+        self.q = rest_quaternions(fem.n_elems) if fem.dim == 3 else np.zeros((fem.n_elems, 1))
+        self.t = 0.0
+        self.failure: Failure | None = None
+        self.applied = np.zeros(self.drone.num_rotors)
+        self._queue = deque([np.zeros(self.drone.num_rotors)] * self._delay_steps)
+        return self.readings()
+
+    @property
+    def alive(self) -> bool:
+        return self.failure is None
+
+    def readings(self, noisy: bool = True) -> Readings:
+        r = read_imus(self.t, self.x, self.v, self.drone.imus)
+        return add_noise(r, self.noise, self.rng) if noisy else r
+
+    def state(self, noisy: bool = True) -> State:
+        return decompose(self.readings(noisy), self.drone.layout)
+
+    @property
+    def thrust_directions(self) -> np.ndarray:
+        """Unit thrust direction of every rotor during the last substep."""
+        return self._dirs.copy()
+
+    # -------------------------------------------------------------------------------- step
+    def step(self, u) -> Readings:
+        """Advance one control interval with command u; returns the readings after it.
+        After a failure the state is frozen and the same readings come back."""
+        if self.failure is not None:
+            return self.readings()
+        tmax = self.drone.max_thrust
+        cmd = np.clip(np.asarray(u, dtype=float), -tmax, tmax)
+        if self._delay_steps:
+            self._queue.append(cmd)
+            cmd = self._queue.popleft()
+        if self.noise.enabled and self.noise.rotor_std > 0:
+            cmd = cmd + self.rng.normal(0.0, self.noise.rotor_std, cmd.shape)
+        self.applied = cmd
+        self._advance(cmd)
+        return self.readings()
+
+    def _advance(self, thrust: np.ndarray) -> None:
+        fem, rot = self.drone.fem, self.drone.rotors
+        x_prev, v_prev = self.x.copy(), self.v.copy()
+        inverted, vmax2 = advance(
+            self.n_sub, self.dt, self.x, self.v, self.q, self._fe, fem.elems, fem.Bm, fem.vol,
+            fem.mu, fem.lam, fem.inc_ptr, fem.inc_idx, self._minv, self.drone.damping,
+            self.cfg.gravity, self._ground, self._bmin, self._bmax, self.cfg.friction,
+            rot.face_ptr, rot.faces, rot.vert_ptr, rot.verts, rot.weights,
+            np.ascontiguousarray(thrust, dtype=float), self._ext, self._dirs)
+        self.t += self.cfg.control_dt
+        reason = None
+        if not (np.isfinite(vmax2) and np.all(np.isfinite(self.x))):
+            reason, detail = "non_finite", "positions or velocities are not finite"
+        elif inverted > 0:
+            reason, detail = "inverted_element", f"{inverted} elements inverted"
+        elif vmax2 > self.cfg.max_speed ** 2:
+            reason, detail = "runaway_speed", f"vertex speed {np.sqrt(vmax2):.1f} m/s > sim.max_speed"
+        elif np.ptp(self.x, axis=0).max() > self.cfg.max_stretch * self._rest_extent:
+            reason, detail = "runaway_extent", "body stretched beyond sim.max_stretch x its rest size"
+        if reason is not None:
+            self.failure = Failure(reason, self.t, detail)
+            self.x, self.v = x_prev, v_prev  # keep the last sane state for readings
