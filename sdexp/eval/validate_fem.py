@@ -184,7 +184,8 @@ def run(cfg, out_dir: Path) -> dict:
         for layers in p.get("layers_2d" if dim == 2 else "layers_3d", [1, 2, 3, 4]):
             pts, el = structured_beam(beam, dim, layers)
             res = cantilever(beam, pts, el)
-            rows.append({"mesh": f"structured {dim}D", "layers": layers, "edge": beam.thickness / layers, **res})
+            rows.append({"mesh": f"structured {dim}D", "layers": layers, "edge": beam.thickness / layers,
+                         "thickness_over_edge": layers, **res})
             print(f"  {dim}D {layers} layers, {len(el)} elements: sag error {res['sag_error']:+.1%}, "
                   f"frequency error {res['freq_error']:+.1%}")
     if p.get("drone_edge_length"):
@@ -193,7 +194,8 @@ def run(cfg, out_dir: Path) -> dict:
         v, f = _beam_surface(beam)
         pts, el = tet_mesh(v, f, edge)
         res = cantilever(beam, pts, el)
-        rows.append({"mesh": "pytetwild 3D", "layers": np.nan, "edge": edge, **res})
+        rows.append({"mesh": "pytetwild 3D", "layers": np.nan, "edge": edge,
+                     "thickness_over_edge": beam.thickness / edge, **res})
         print(f"  pytetwild at edge {edge} m, {len(el)} tets: sag error {res['sag_error']:+.1%}, "
               f"frequency error {res['freq_error']:+.1%}")
     table = pd.DataFrame(rows)

@@ -156,6 +156,12 @@ def build_drone(cfg, cache_dir: str) -> Drone:
     """cfg is the ``drone`` config node (validated)."""
     shape = make_shape(cfg)
     points, elems = mesh_shape(shape, cfg.mesh.edge_length, cfg.mesh.stop_energy, cache_dir)
+    return assemble_drone(cfg, shape, points, elems)
+
+
+def assemble_drone(cfg, shape: Shape, points: np.ndarray, elems: np.ndarray) -> Drone:
+    """Bind rotors and IMUs of ``shape`` to the mesh (points, elems); cfg supplies the
+    material, mass, thrust limit and patch radii (a DroneConfig or anything with its fields)."""
     fem = build_fem(points, elems, cfg.mass, cfg.youngs_modulus, cfg.poisson_ratio)
     boundary = boundary_faces(elems)
     rotors = build_rotors(points, boundary, shape.rotors, shape.rotor_normals, cfg.rotor_radius, cfg.name)

@@ -9,7 +9,7 @@ Rotations come from the warm-started quaternion iteration of Mueller et al. 2016
 method to extract the rotational part of deformations"): it stays a proper rotation for
 inverted elements and, warm-started from the last substep, needs one or two iterations.
 
-2D uses plane strain with an out-of-plane depth of 1 m; the rotation is exact (atan2).
+2D uses plane strain with an out-of-plane depth of 1 m; the rotation is exact.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-POLAR_ITERATIONS = 2
+POLAR_ITERATIONS = 1
 
 
 @dataclass
@@ -199,8 +199,10 @@ def elastic_forces_2d(x, elems, Bm, vol, mu, lam, q, fe):
         f10 = d1y * b00 + d2y * b10; f11 = d1y * b01 + d2y * b11
         if f00 * f11 - f01 * f10 <= 0.0:
             inverted += 1
-        th = np.arctan2(f10 - f01, f00 + f11)
-        c = np.cos(th); s = np.sin(th)
+        # the polar rotation of a 2x2 F, exactly and without trig
+        c = f00 + f11; s = f10 - f01
+        inv_n = 1.0 / np.sqrt(c * c + s * s + 1e-300)
+        c *= inv_n; s *= inv_n
         # S = R^T F with R = [[c, -s], [s, c]]
         s00 = c * f00 + s * f10; s11 = -s * f01 + c * f11
         s01 = 0.5 * ((c * f01 + s * f11) + (-s * f00 + c * f10))

@@ -52,7 +52,7 @@ def integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping, gravity,
     """Symplectic Euler with implicit mass-proportional damping, then contact projection.
     ``ground`` is -inf when there is no ground. Returns the largest squared speed."""
     nv, dim = x.shape
-    per = fe.shape[1]
+    rows = fe.reshape(-1, dim)  # inc_idx holds rows of this view: e * (dim + 1) + local
     nb_box = boxes_min.shape[0]
     vmax2 = 0.0
     scale = 1.0 / (1.0 + dt * damping)
@@ -62,10 +62,9 @@ def integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping, gravity,
             fz = ext[i, 2]
         for k in range(inc_ptr[i], inc_ptr[i + 1]):
             s = inc_idx[k]
-            e = s // per; j = s - e * per
-            fx += fe[e, j, 0]; fy += fe[e, j, 1]
+            fx += rows[s, 0]; fy += rows[s, 1]
             if dim == 3:
-                fz += fe[e, j, 2]
+                fz += rows[s, 2]
         mi = minv[i]  # 0 pins the vertex (clamped supports in the validation cases)
         g = gravity if mi > 0.0 else 0.0
         vx = (v[i, 0] + dt * fx * mi) * scale

@@ -1,0 +1,55 @@
+"""Plots every experiment leaves behind, readable at a glance."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+
+def refinement_plot(table: pd.DataFrame, path: Path) -> None:
+    """Cantilever error against elements through the thickness, 2D and 3D."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for (mesh, group), marker in zip(table.groupby("mesh", sort=False), "os^"):
+        x = group["thickness_over_edge"] if "thickness_over_edge" in group else group["layers"]
+        for ax, col in zip(axes, ("sag_error", "freq_error")):
+            ax.plot(x, 100 * group[col], marker=marker, label=mesh)
+    for ax, title in zip(axes, ("static tip sag vs Euler-Bernoulli", "1st bending frequency vs Euler-Bernoulli")):
+        ax.axhline(0, color="k", lw=0.8)
+        ax.axhspan(-10, 10, color="g", alpha=0.08, label="+-10%")
+        ax.set_xlabel("thickness / element size")
+        ax.set_ylabel("error (%)")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.suptitle("Cantilever under its own weight: linear elements converge from the stiff side")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def bench_plot(table: pd.DataFrame, path: Path) -> None:
+    """Real-time factor per drone, and cost against element count (linear scaling)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    base = table[table["series"] == "drone"]
+    axes[0].barh(base["drone"], base["realtime_factor"], color="tab:blue")
+    axes[0].axvline(10, color="r", ls="--", label="10x real time")
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("real-time factor (simulated s / wall s)")
+    axes[0].legend()
+    scale = table[table["series"] == "scaling"]
+    axes[1].loglog(scale["elements"], scale["us_per_substep"], "o-", label="flower, refined")
+    if len(scale):
+        e0, t0 = scale["elements"].iloc[-1], scale["us_per_substep"].iloc[-1]
+        axes[1].loglog(scale["elements"], t0 * scale["elements"] / e0, "k--", lw=0.8, label="linear")
+    axes[1].set_xlabel("elements")
+    axes[1].set_ylabel("microseconds per substep")
+    axes[1].legend()
+    for ax in axes:
+        ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
