@@ -58,7 +58,7 @@ class SimConfig:
     friction: float = 0.5                # Coulomb coefficient on ground and boxes
     max_speed: float = 100.0             # m/s; faster vertices count as a blow-up
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
-    threads: int = 2                     # numba threads for the FEM kernel
+    threads: int = 0                     # FEM kernel threads; 0 = auto (2 for big meshes)
 
 
 @dataclass
@@ -116,7 +116,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
            "null or in (0, sim.control_dt]")
     _check(0 < s.stability_safety <= 1, "sim.stability_safety", s.stability_safety, "in (0, 1]")
-    _check(s.threads >= 1, "sim.threads", s.threads, ">= 1")
+    _check(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
     _check(s.friction >= 0, "sim.friction", s.friction, ">= 0")
     for i, b in enumerate(s.obstacles):
         _check(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),

@@ -20,6 +20,11 @@ from sdexp.sim.integrator import advance
 from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
 
 
+# Below this many elements a second thread costs more in synchronisation (two parallel
+# regions a substep) than it saves, and a busy second core stalls every region.
+PARALLEL_MIN_ELEMENTS = 4000
+
+
 @dataclass
 class Failure:
     reason: str      # inverted_element | non_finite | runaway_speed | runaway_extent
@@ -50,7 +55,8 @@ class Simulator:
         self._ground = -np.inf if sim_cfg.ground is None else float(sim_cfg.ground)
         self._delay_steps = int(round(noise_cfg.delay / sim_cfg.control_dt)) if noise_cfg.enabled else 0
         self._rest_extent = np.ptp(fem.rest, axis=0).max()
-        numba.set_num_threads(min(sim_cfg.threads, numba.config.NUMBA_NUM_THREADS))
+        self.threads = sim_cfg.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
+        self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
         self.reset()
 
     # -------------------------------------------------------------------------------- state
@@ -102,6 +108,7 @@ class Simulator:
 
     def _advance(self, thrust: np.ndarray) -> None:
         fem, rot = self.drone.fem, self.drone.rotors
+        numba.set_num_threads(self.threads)
         x_prev, v_prev = self.x.copy(), self.v.copy()
         inverted, vmax2 = advance(
             self.n_sub, self.dt, self.x, self.v, self.q, self._fe, fem.elems, fem.Bm, fem.vol,

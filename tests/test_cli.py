@@ -1,0 +1,109 @@
+"""Configs compose, experiments run shrunk, and bad input gets a clear error, not a traceback."""
+import json
+import subprocess
+import sys
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError
+
+from sdexp.cli import CONF_DIR
+from sdexp.config import validate
+from sdexp.errors import UserError
+from sdexp.eval.experiments import RUNNERS, run_experiment
+from sdexp.sim.drone import drone_names
+
+DRONES = ["bunny", "diamond", "donut", "elephant", "engine", "flower", "leaf", "octopus",
+          "orange_peel", "rainbow", "rod", "star"]
+
+
+def make_cfg(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def test_the_twelve_paper_drones_are_configured():
+    assert drone_names() == DRONES
+
+
+@pytest.mark.parametrize("drone", DRONES)
+def test_every_drone_config_is_valid_against_the_table(drone):
+    cfg = make_cfg(f"drone={drone}")
+    validate(cfg)
+    assert cfg.drone.mass == 1.0 and cfg.drone.max_thrust == 10.0
+    table = {  # supplement B: modulus, bounding lengths, sensors, rotors
+        "donut": (1e4, [3.5, 0.36, 3.5], 4, 4), "star": (3e3, [3.6, 0.375, 3.6], 4, 5),
+        "flower": (6e3, [3.6, 0.225, 3.6], 8, 9), "leaf": (3e3, [2.4, 0.075, 4.5], 4, 4),
+        "octopus": (1e4, [3.6, 1.5, 3.6], 8, 9), "orange_peel": (5e2, [3.0, 1.3, 2.9], 5, 5),
+        "engine": (6e3, [1.90, 2.16], 6, 6), "bunny": (6e3, [1.12, 1.75], 3, 3),
+        "diamond": (6e3, [1.47, 1.42], 8, 4), "elephant": (6e3, [2.46, 1.69], 3, 2),
+        "rainbow": (6e3, [2.08, 1.30], 4, 2), "rod": (6e3, [8.0, 0.1], 8, 5),
+    }
+    E, size, sensors, rotors = table[drone]
+    assert cfg.drone.youngs_modulus == E
+    # the rod is read as a horizontal 8 m beam (the table lists it as 0.1 x 8.0)
+    assert sorted(cfg.drone.size) == sorted(size)
+    assert (cfg.drone.num_sensors, cfg.drone.num_rotors) == (sensors, rotors)
+
+
+@pytest.mark.parametrize("experiment", sorted(RUNNERS))
+def test_every_experiment_composes(experiment):
+    cfg = make_cfg(f"experiment={experiment}")
+    assert cfg.experiment.name == experiment
+    validate(cfg)
+
+
+def test_misspelled_key_is_an_error():
+    with pytest.raises(ConfigKeyError):
+        OmegaConf.merge(make_cfg(), OmegaConf.create({"drone": {"youngs_modulos": 5}}))
+
+
+@pytest.mark.parametrize("override, key", [
+    ("drone.youngs_modulus=-1", "drone.youngs_modulus"),
+    ("drone.poisson_ratio=0.5", "drone.poisson_ratio"),
+    ("drone.mass=0", "drone.mass"),
+    ("sim.substep=0.5", "sim.substep"),
+])
+def test_non_physical_values_name_the_key(override, key):
+    with pytest.raises(UserError, match=key.replace(".", r"\.")):
+        validate(make_cfg(override))
+
+
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "sdexp.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_cli_errors_are_short_and_list_choices(tmp_path):
+    res = _cli("drone=nope", cwd=tmp_path)
+    assert res.returncode != 0 and "flower" in res.stderr and "rod" in res.stderr
+    res = _cli("experiment=nope", cwd=tmp_path)
+    assert res.returncode != 0 and "bench_sim" in res.stderr
+    res = _cli("experiment=bench_sim", "drone.poisson_ratio=0.7", f"hydra.run.dir={tmp_path}/o", cwd=tmp_path)
+    assert res.returncode == 2
+    assert "drone.poisson_ratio" in res.stderr and "Traceback" not in res.stderr
+    res = _cli("drone=bunny", "drone.num_rotors=5", "experiment.params.drones=[bunny]",
+               f"hydra.run.dir={tmp_path}/o2", cwd=tmp_path)
+    assert res.returncode == 2 and "num_rotors" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
+    cfg = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[rod]",
+                   "experiment.params.seconds=0.05", "experiment.params.scaling_edges=[]",
+                   f"cache_dir={cache_dir}")
+    metrics = run_experiment(cfg, tmp_path)
+    assert (tmp_path / "bench_sim.csv").exists() and (tmp_path / "bench_sim.png").exists()
+    assert metrics["rod_realtime_factor"] > 0
+    saved = OmegaConf.load(tmp_path / "config.yaml")
+    assert saved.drone.name == "rod" and saved.cache_dir == cache_dir
+    (tmp_path / "bench_sim.csv").unlink()
+    assert run_experiment(cfg, tmp_path) == json.loads((tmp_path / "metrics.json").read_text())
+    assert not (tmp_path / "bench_sim.csv").exists()  # skipped: metrics.json was there
+
+
+def test_validate_fem_runs_shrunk(tmp_path):
+    cfg = make_cfg("experiment=validate_fem", "experiment.params.layers_2d=[1,2]",
+                   "experiment.params.layers_3d=[1]", "experiment.params.drone_edge_length=null")
+    metrics = run_experiment(cfg, tmp_path)
+    assert abs(metrics["rigid_rise_error"]) < 0.01
+    assert metrics["sag_error_structured_2D_2"] < 0 and (tmp_path / "cantilever.png").exists()
