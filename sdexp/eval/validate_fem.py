@@ -12,44 +12,28 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 import pandas as pd
 
-from sdexp.sim.fem import FemModel, build_fem, rest_quaternions, stable_substep
-from sdexp.sim.integrator import advance
+from sdexp.sim.fem import FemModel, build_fem, stable_substep
+from sdexp.sim.integrator import Body
 from sdexp.sim.structured import box_tets, box_tris
 
 EB_ROOT = 1.8751040687  # first root of cos(x) cosh(x) = -1
 
 
-class FreeBody:
-    """A FEM body with no rotors, for validation: run substeps, optionally with pinned
-    vertices (minv = 0) and external nodal forces."""
+class FreeBody(Body):
+    """A FEM body with no rotors at its largest stable substep, for validation."""
 
     def __init__(self, fem: FemModel, safety: float = 0.8, pinned: np.ndarray | None = None):
-        self.fem = fem
+        super().__init__(fem, threads=1, pinned=pinned)
         self.dt = stable_substep(fem, safety)
-        self.x = fem.rest.copy()
-        self.v = np.zeros_like(self.x)
-        d = fem.dim
-        self.q = rest_quaternions(fem.n_elems) if d == 3 else np.zeros((fem.n_elems, 1))
-        self.fe = np.zeros((fem.n_elems, d + 1, d))
-        self.minv = 1.0 / fem.mass
-        if pinned is not None:
-            self.minv[pinned] = 0.0
-        self.ext = np.zeros_like(self.x)
-        self._none_box = np.zeros((0, d))
-        self._no_rotor = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.int64),
-                          np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
 
     def run(self, n: int, damping: float = 0.0, gravity: float = 0.0) -> int:
         """n substeps; returns the largest count of inverted elements seen."""
-        f = self.fem
-        inv, _ = advance(n, self.dt, self.x, self.v, self.q, self.fe, f.elems, f.Bm, f.vol, f.mu,
-                         f.lam, f.inc_ptr, f.inc_idx, self.minv, damping, gravity, -np.inf,
-                         self._none_box, self._none_box, 0.0, *self._no_rotor, self.ext,
-                         np.zeros((0, f.dim)))
-        return inv
+        numba.set_num_threads(1)
+        return super().run(n, self.dt, None, damping, gravity)[0]
 
 
 # ------------------------------------------------------------------------------ cantilever

@@ -1,16 +1,17 @@
-"""The explicit substep: gather element forces, add rotor thrust and gravity, apply
-mass-proportional damping, step with symplectic Euler, resolve contact with the ground and
-static boxes. Everything here runs inside numba; one call advances a whole control step.
+"""The explicit substep: elastic forces, rotor thrust, gravity, mass-proportional damping,
+symplectic Euler, contact with the ground and static boxes. ``Body`` holds the state arrays
+and runs whole control steps inside numba.
 """
 from __future__ import annotations
 
 import numba as nb
 import numpy as np
 
-from sdexp.sim.fem import elastic_forces_2d, elastic_forces_3d
+from sdexp.sim.fem import FemModel, elastic_forces_2d, elastic_forces_3d, rest_quaternions
+from sdexp.sim.native import corotated_kernel_3d
 
 
-@nb.njit(cache=True, fastmath=True)
+@nb.njit(fastmath=True, cache=True, error_model="numpy")
 def rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs):
     """Thrust of rotor r acts along the area-weighted normal of its bound surface triangles
     (3D) or segments (2D), spread over its bound vertices by ``weights``.
@@ -46,26 +47,26 @@ def rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs):
                 ext[i, 2] += f * nz
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
-def integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping, gravity,
-              ground, boxes_min, boxes_max, friction):
+@nb.njit(fastmath=True, cache=True, error_model="numpy")
+def integrate(x, v, fbuf, minv, ext, dt, damping, gravity, ground, boxes_min, boxes_max, friction):
     """Symplectic Euler with implicit mass-proportional damping, then contact projection.
-    ``ground`` is -inf when there is no ground. Returns the largest squared speed."""
+    ``ground`` is -inf when there is no ground; minv = 0 pins a vertex. Serial: per vertex it
+    is a few dozen flops, less than the cost of a parallel region on meshes this size.
+    Returns the largest squared speed."""
     nv, dim = x.shape
-    rows = fe.reshape(-1, dim)  # inc_idx holds rows of this view: e * (dim + 1) + local
+    nt = fbuf.shape[0]
     nb_box = boxes_min.shape[0]
     vmax2 = 0.0
     scale = 1.0 / (1.0 + dt * damping)
-    for i in nb.prange(nv):
+    for i in range(nv):
         fx = ext[i, 0]; fy = ext[i, 1]; fz = 0.0
         if dim == 3:
             fz = ext[i, 2]
-        for k in range(inc_ptr[i], inc_ptr[i + 1]):
-            s = inc_idx[k]
-            fx += rows[s, 0]; fy += rows[s, 1]
+        for t in range(nt):
+            fx += fbuf[t, i, 0]; fy += fbuf[t, i, 1]
             if dim == 3:
-                fz += rows[s, 2]
-        mi = minv[i]  # 0 pins the vertex (clamped supports in the validation cases)
+                fz += fbuf[t, i, 2]
+        mi = minv[i]
         g = gravity if mi > 0.0 else 0.0
         vx = (v[i, 0] + dt * fx * mi) * scale
         vy = (v[i, 1] + dt * (fy * mi - g)) * scale
@@ -123,20 +124,63 @@ def integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping, gravity,
 
 
 @nb.njit(cache=True)
-def advance(n_sub, dt, x, v, q, fe, elems, Bm, vol, mu, lam, inc_ptr, inc_idx, minv, damping,
+def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, damping,
             gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
             weights, thrust, ext, dirs):
-    """Run n_sub substeps. Returns (max inverted elements seen, max squared speed)."""
+    """Run n_sub substeps; one force buffer per thread in fbuf (nt, nv, dim). ``kernel``: the
+    C-signature 3D force kernel (sdexp.sim.native).
+    Returns (max inverted elements seen, max squared speed)."""
     worst = 0
     vmax2 = 0.0
     dim = x.shape[1]
     for _ in range(n_sub):
         if dim == 3:
-            inv = elastic_forces_3d(x, elems, Bm, vol, mu, lam, q, fe)
+            inv = elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf)
         else:
-            inv = elastic_forces_2d(x, elems, Bm, vol, mu, lam, q, fe)
+            inv = elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf)
         worst = max(worst, inv)
         rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs)
-        vmax2 = max(vmax2, integrate(x, v, fe, inc_ptr, inc_idx, minv, ext, dt, damping,
-                                     gravity, ground, boxes_min, boxes_max, friction))
+        vmax2 = max(vmax2, integrate(x, v, fbuf, minv, ext, dt, damping, gravity, ground,
+                                     boxes_min, boxes_max, friction))
     return worst, vmax2
+
+
+_NO_ROTORS = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.int64),
+              np.zeros(0, np.int64), np.zeros(0))
+
+
+class Body:
+    """The mutable state of one FEM body and the call that advances it.
+
+    ``threads`` sets how many force buffers (and numba threads) the element loop uses; the
+    caller sets numba's thread count to match before ``run``."""
+
+    def __init__(self, fem: FemModel, threads: int = 1, rotors=None, ground: float | None = None,
+                 boxes_min=None, boxes_max=None, friction: float = 0.0, pinned=None):
+        d = fem.dim
+        self.fem = fem
+        self.x = fem.rest.copy()
+        self.v = np.zeros_like(self.x)
+        self.q = rest_quaternions(fem.n_elems) if d == 3 else np.zeros((fem.n_elems, 1))
+        self.fbuf = np.zeros((threads,) + self.x.shape)
+        self.minv = 1.0 / fem.mass
+        if pinned is not None:
+            self.minv[pinned] = 0.0
+        self.ext = np.zeros_like(self.x)
+        m = 0 if rotors is None else rotors.count
+        self.dirs = np.zeros((m, d))
+        self.rotors = _NO_ROTORS if rotors is None else (
+            rotors.face_ptr, rotors.faces, rotors.vert_ptr, rotors.verts, rotors.weights)
+        self.ground = -np.inf if ground is None else float(ground)
+        self.boxes_min = np.zeros((0, d)) if boxes_min is None else np.asarray(boxes_min, float).reshape(-1, d)
+        self.boxes_max = np.zeros((0, d)) if boxes_max is None else np.asarray(boxes_max, float).reshape(-1, d)
+        self.friction = friction
+
+    def run(self, n_sub: int, dt: float, thrust=None, damping: float = 0.0, gravity: float = 0.0):
+        """n_sub substeps; returns (max inverted elements seen, max squared speed)."""
+        f = self.fem
+        thrust = np.zeros(len(self.dirs)) if thrust is None else np.ascontiguousarray(thrust, dtype=float)
+        return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
+                       f.Bm, f.vol, f.mu, f.lam, self.minv, damping, gravity, self.ground,
+                       self.boxes_min, self.boxes_max, self.friction, *self.rotors, thrust,
+                       self.ext, self.dirs)

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from sdexp.errors import UserError
-from sdexp.sim.rotations import average_rotations, euler_from_matrix, euler_rates, exp_so3
+from sdexp.sim.rotations import average_rotations, euler_from_matrix, euler_rates
 
 
 @dataclass
@@ -128,38 +129,77 @@ def build_imu_patches(points, boundary, shape, radius: float, name: str) -> tupl
     return patches, SensorLayout(dim, frame_idx, periph_idx, r_hat)
 
 
+@nb.njit(cache=True)
+def _imu_kernel(x, v, idx, w, wx, wz):
+    """Per IMU patch: mean position and velocity, the raw cross-product frame (3D: columns X,
+    Y, Z; 2D: the angle of X'), and the rigid-fit angular velocity solving
+    (sum |r|^2 1 - r r^T) omega = sum r x (v - v_mean)."""
+    K, P = idx.shape
+    dim = x.shape[1]
+    pos = np.zeros((K, dim)); vel = np.zeros((K, dim))
+    frames = np.zeros((K, 3, 3)); angles = np.zeros(K); omega = np.zeros((K, 3))
+    for k in range(K):
+        for j in range(P):
+            for c in range(dim):
+                pos[k, c] += w[k, j] * x[idx[k, j], c]
+                vel[k, c] += w[k, j] * v[idx[k, j], c]
+        xp = np.zeros(3); zp = np.zeros(3); b = np.zeros(3); I = np.zeros((3, 3))
+        for j in range(P):
+            if w[k, j] == 0.0:
+                continue
+            r = np.zeros(3); dv = np.zeros(3)
+            for c in range(dim):
+                r[c] = x[idx[k, j], c] - pos[k, c]
+                dv[c] = v[idx[k, j], c] - vel[k, c]
+                xp[c] += wx[k, j] * r[c]
+                zp[c] += wz[k, j] * r[c]
+            b += np.cross(r, dv)
+            rr = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+            for i in range(3):
+                I[i, i] += rr
+                for c in range(3):
+                    I[i, c] -= r[i] * r[c]
+        if dim == 2:
+            angles[k] = np.arctan2(xp[1], xp[0])
+            omega[k, 2] = b[2] / I[2, 2]
+            continue
+        Y = np.cross(zp, xp)
+        Y /= np.sqrt(Y @ Y)
+        X = xp - (xp @ Y) * Y
+        X /= np.sqrt(X @ X)
+        Z = np.cross(X, Y)
+        for c in range(3):
+            frames[k, c, 0] = X[c]; frames[k, c, 1] = Y[c]; frames[k, c, 2] = Z[c]
+        omega[k] = np.linalg.solve(I, b)
+    return pos, vel, frames, angles, omega
+
+
 def _raw_frames(x: np.ndarray, p: ImuPatches) -> np.ndarray:
-    X = x[p.idx]
-    c = np.einsum("kp,kpd->kd", p.w, X)
-    xp = np.einsum("kp,kpd->kd", p.wx, X - c[:, None])
-    if x.shape[1] == 2:
-        return np.arctan2(xp[:, 1], xp[:, 0])
-    zp = np.einsum("kp,kpd->kd", p.wz, X - c[:, None])
-    Y = np.cross(zp, xp)
-    Y /= np.linalg.norm(Y, axis=1, keepdims=True)
-    Xa = xp - np.sum(xp * Y, axis=1, keepdims=True) * Y
-    Xa /= np.linalg.norm(Xa, axis=1, keepdims=True)
-    return np.stack([Xa, Y, np.cross(Xa, Y)], axis=-1)
+    _, _, frames, angles, _ = _imu_kernel(x, np.zeros_like(x), p.idx, p.w, p.wx, p.wz)
+    return angles if x.shape[1] == 2 else frames
 
 
 def read_imus(t: float, x: np.ndarray, v: np.ndarray, p: ImuPatches) -> Readings:
     """Noise-free IMU readings from the vertex positions and velocities."""
-    X, V = x[p.idx], v[p.idx]
-    pos = np.einsum("kp,kpd->kd", p.w, X)
-    vel = np.einsum("kp,kpd->kd", p.w, V)
-    r = (X - pos[:, None]) * (p.w > 0)[..., None]
-    dv = V - vel[:, None]
-    raw = _raw_frames(x, p)
+    pos, vel, frames, angles, omega = _imu_kernel(x, v, p.idx, p.w, p.wx, p.wz)
     if x.shape[1] == 2:
-        cross = r[..., 0] * dv[..., 1] - r[..., 1] * dv[..., 0]
-        omega = cross.sum(axis=1) / np.sum(r * r, axis=(1, 2))
-        rot = np.angle(np.exp(1j * (raw - p.rest)))
-        return Readings(t, pos, vel, rot, omega)
-    # rigid fit: I omega = sum r x dv with I = sum(|r|^2 1 - r r^T)
-    I = np.einsum("kp,ij->kij", np.sum(r * r, axis=-1), np.eye(3)) - np.einsum("kpi,kpj->kij", r, r)
-    omega = np.linalg.solve(I, np.cross(r, dv).sum(axis=1)[..., None])[..., 0]
-    rot = raw @ np.swapaxes(p.rest, 1, 2)
-    return Readings(t, pos, vel, rot, omega)
+        return Readings(t, pos, vel, np.angle(np.exp(1j * (angles - p.rest))), omega[:, 2])
+    return Readings(t, pos, vel, frames @ np.swapaxes(p.rest, 1, 2), omega)
+
+
+@nb.njit(cache=True)
+def _rotate_by(delta, rot):
+    """exp([delta]x) @ rot for each row: Rodrigues' formula, batched."""
+    out = np.empty_like(rot)
+    for k in range(rot.shape[0]):
+        th = np.sqrt(delta[k] @ delta[k])
+        a = np.sin(th) / th if th > 1e-12 else 1.0
+        b = (1.0 - np.cos(th)) / (th * th) if th > 1e-12 else 0.5
+        W = np.array([[0.0, -delta[k, 2], delta[k, 1]],
+                      [delta[k, 2], 0.0, -delta[k, 0]],
+                      [-delta[k, 1], delta[k, 0], 0.0]])
+        out[k] = (np.eye(3) + a * W + b * (W @ W)) @ rot[k]
+    return out
 
 
 def add_noise(r: Readings, noise, rng: np.random.Generator) -> Readings:
@@ -173,7 +213,7 @@ def add_noise(r: Readings, noise, rng: np.random.Generator) -> Readings:
     if r.rot.ndim == 1:
         rot = r.rot + rng.normal(0.0, a, r.rot.shape)
     else:
-        rot = exp_so3(rng.normal(0.0, a, (len(r.rot), 3))) @ r.rot
+        rot = _rotate_by(rng.normal(0.0, a, (len(r.rot), 3)), r.rot)
     return Readings(r.t, pos, vel, rot, omega)
 
 

@@ -15,14 +15,14 @@ import numba
 import numpy as np
 
 from sdexp.sim.drone import Drone
-from sdexp.sim.fem import rest_quaternions, stable_substep
-from sdexp.sim.integrator import advance
+from sdexp.sim.fem import stable_substep
+from sdexp.sim.integrator import Body
 from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
 
 
 # Below this many elements a second thread costs more in synchronisation (two parallel
 # regions a substep) than it saves, and a busy second core stalls every region.
-PARALLEL_MIN_ELEMENTS = 4000
+PARALLEL_MIN_ELEMENTS = 1500
 
 
 @dataclass
@@ -44,29 +44,21 @@ class Simulator:
         self.n_sub = int(np.ceil(sim_cfg.control_dt / dt_max - 1e-9))
         self.dt = sim_cfg.control_dt / self.n_sub
         self.stable_limit = dt_stable / sim_cfg.stability_safety
-        d = fem.dim
-        self._minv = 1.0 / fem.mass
-        self._fe = np.zeros((fem.n_elems, d + 1, d))
-        self._ext = np.zeros_like(fem.rest)
-        self._dirs = np.zeros((drone.num_rotors, d))
-        obstacles = list(sim_cfg.obstacles)
-        self._bmin = np.array([list(b.min) for b in obstacles], dtype=float).reshape(-1, d)
-        self._bmax = np.array([list(b.max) for b in obstacles], dtype=float).reshape(-1, d)
-        self._ground = -np.inf if sim_cfg.ground is None else float(sim_cfg.ground)
-        self._delay_steps = int(round(noise_cfg.delay / sim_cfg.control_dt)) if noise_cfg.enabled else 0
-        self._rest_extent = np.ptp(fem.rest, axis=0).max()
         self.threads = sim_cfg.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
+        self._delay_steps = int(round(noise_cfg.delay / sim_cfg.control_dt)) if noise_cfg.enabled else 0
+        self._rest_extent = np.ptp(fem.rest, axis=0).max()
         self.reset()
 
     # -------------------------------------------------------------------------------- state
     def reset(self, position=None) -> Readings:
-        fem = self.drone.fem
-        self.x = fem.rest.copy()
+        c = self.cfg
+        boxes = list(c.obstacles)
+        self.body = Body(self.drone.fem, self.threads, self.drone.rotors, c.ground,
+                         [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
+                         c.friction)
         if position is not None:
-            self.x += np.asarray(position, dtype=float)
-        self.v = np.zeros_like(self.x)
-        self.q = rest_quaternions(fem.n_elems) if fem.dim == 3 else np.zeros((fem.n_elems, 1))
+            self.body.x += np.asarray(position, dtype=float)
         self.t = 0.0
         self.failure: Failure | None = None
         self.applied = np.zeros(self.drone.num_rotors)
@@ -77,8 +69,17 @@ class Simulator:
     def alive(self) -> bool:
         return self.failure is None
 
+    @property
+    def x(self) -> np.ndarray:
+        """Vertex positions (nv, dim): for plots and tests; controllers see readings only."""
+        return self.body.x
+
+    @property
+    def v(self) -> np.ndarray:
+        return self.body.v
+
     def readings(self, noisy: bool = True) -> Readings:
-        r = read_imus(self.t, self.x, self.v, self.drone.imus)
+        r = read_imus(self.t, self.body.x, self.body.v, self.drone.imus)
         return add_noise(r, self.noise, self.rng) if noisy else r
 
     def state(self, noisy: bool = True) -> State:
@@ -87,7 +88,7 @@ class Simulator:
     @property
     def thrust_directions(self) -> np.ndarray:
         """Unit thrust direction of every rotor during the last substep."""
-        return self._dirs.copy()
+        return self.body.dirs.copy()
 
     # -------------------------------------------------------------------------------- step
     def step(self, u) -> Readings:
@@ -107,25 +108,20 @@ class Simulator:
         return self.readings()
 
     def _advance(self, thrust: np.ndarray) -> None:
-        fem, rot = self.drone.fem, self.drone.rotors
+        body = self.body
+        x_prev, v_prev = body.x.copy(), body.v.copy()
         numba.set_num_threads(self.threads)
-        x_prev, v_prev = self.x.copy(), self.v.copy()
-        inverted, vmax2 = advance(
-            self.n_sub, self.dt, self.x, self.v, self.q, self._fe, fem.elems, fem.Bm, fem.vol,
-            fem.mu, fem.lam, fem.inc_ptr, fem.inc_idx, self._minv, self.drone.damping,
-            self.cfg.gravity, self._ground, self._bmin, self._bmax, self.cfg.friction,
-            rot.face_ptr, rot.faces, rot.vert_ptr, rot.verts, rot.weights,
-            np.ascontiguousarray(thrust, dtype=float), self._ext, self._dirs)
+        inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.drone.damping, self.cfg.gravity)
         self.t += self.cfg.control_dt
         reason = None
-        if not (np.isfinite(vmax2) and np.all(np.isfinite(self.x))):
+        if not (np.isfinite(vmax2) and np.all(np.isfinite(body.x))):
             reason, detail = "non_finite", "positions or velocities are not finite"
         elif inverted > 0:
             reason, detail = "inverted_element", f"{inverted} elements inverted"
         elif vmax2 > self.cfg.max_speed ** 2:
             reason, detail = "runaway_speed", f"vertex speed {np.sqrt(vmax2):.1f} m/s > sim.max_speed"
-        elif np.ptp(self.x, axis=0).max() > self.cfg.max_stretch * self._rest_extent:
+        elif np.ptp(body.x, axis=0).max() > self.cfg.max_stretch * self._rest_extent:
             reason, detail = "runaway_extent", "body stretched beyond sim.max_stretch x its rest size"
         if reason is not None:
             self.failure = Failure(reason, self.t, detail)
-            self.x, self.v = x_prev, v_prev  # keep the last sane state for readings
+            body.x[:], body.v[:] = x_prev, v_prev  # keep the last sane state for readings
