@@ -106,4 +106,10 @@ def test_validate_fem_runs_shrunk(tmp_path):
                    "experiment.params.layers_3d=[1]", "experiment.params.drone_edge_length=null")
     metrics = run_experiment(cfg, tmp_path)
     assert abs(metrics["rigid_rise_error"]) < 0.01
-    assert metrics["sag_error_structured_2D_2"] < 0 and (tmp_path / "cantilever.png").exists()
+    assert metrics["sag_error_structured_2D_2layers"] < 0 and (tmp_path / "cantilever.png").exists()
+
+
+def test_gallery_runs_shrunk(tmp_path, cache_dir):
+    cfg = make_cfg("experiment=gallery", "experiment.params.drones=[rod,bunny]", f"cache_dir={cache_dir}")
+    metrics = run_experiment(cfg, tmp_path)
+    assert metrics["rod_elements"] > 0 and (tmp_path / "drones.png").exists()

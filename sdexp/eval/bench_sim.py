@@ -59,7 +59,7 @@ def run(cfg, out_dir: Path) -> dict:
     for edge in tqdm(list(p.get("scaling_edges", [])), desc="bench_sim scaling"):
         d = load_drone_cfg(p.get("scaling_drone", "flower"))
         d.mesh.edge_length = float(edge)
-        rows.append({"series": "scaling", **time_drone(d, cfg, float(p.seconds), int(cfg.seed))})
+        rows.append({"series": "scaling", **time_drone(d, cfg, float(p.scaling_seconds), int(cfg.seed))})
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "bench_sim.csv", index=False)
     bench_plot(table, out_dir / "bench_sim.png")

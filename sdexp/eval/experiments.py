@@ -18,6 +18,7 @@ from sdexp.errors import UserError
 # name -> "module:function"; each function is run(cfg, out_dir) -> dict of metrics
 RUNNERS = {
     "bench_sim": "sdexp.eval.bench_sim:run",
+    "gallery": "sdexp.eval.gallery:run",
     "validate_fem": "sdexp.eval.validate_fem:run",
 }
 

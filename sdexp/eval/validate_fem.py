@@ -189,7 +189,8 @@ def run(cfg, out_dir: Path) -> dict:
     pd.DataFrame([rigid]).to_csv(out_dir / "stiff_limit.csv", index=False)
     metrics = {"rigid_rise_error": rigid["rise"] / rigid["rise_rigid"] - 1}
     for r in rows:
-        key = f"{r['mesh'].replace(' ', '_')}_{'' if np.isnan(r['layers']) else int(r['layers'])}"
+        key = (f"pytetwild_edge{r['edge']:g}" if np.isnan(r["layers"])
+               else f"{r['mesh'].replace(' ', '_')}_{int(r['layers'])}layers")
         metrics[f"sag_error_{key}"] = r["sag_error"]
         metrics[f"freq_error_{key}"] = r["freq_error"]
     return metrics
