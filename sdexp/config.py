@@ -18,7 +18,8 @@ from sdexp.errors import UserError
 @dataclass
 class MeshConfig:
     edge_length: float = 0.2   # target element edge length (m); the resolution knob
-    stop_energy: float = 10.0  # fTetWild quality target (3D only); high values run for minutes
+    stop_energy: float = 10.0  # fTetWild quality target (3D only); lower = better tets, slower
+    coarsen: bool = False      # fTetWild drops every vertex it can while keeping the quality
 
 
 @dataclass

@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 
 from sdexp.eval.bench_sim import load_drone_cfg
-from sdexp.sim.drone import build_drone, drone_names
+from sdexp.sim.drone import build_drone, drone_names, face_normals
 
 
 def run(cfg, out_dir: Path) -> dict:
@@ -25,7 +25,7 @@ def run(cfg, out_dir: Path) -> dict:
         x = drone.fem.rest
         plane = [0, 2] if drone.dim == 3 else [0, 1]
         if drone.dim == 3:  # top view of the upper surface
-            up = drone.boundary[np.einsum("ij,ij->i", *_normals(x, drone.boundary)) > 0]
+            up = drone.boundary[face_normals(x, drone.boundary)[:, 1] > 0]
             ax.triplot(x[:, 0], x[:, 2], up, color="0.75", lw=0.4)
         else:
             ax.triplot(x[:, 0], x[:, 1], drone.fem.elems, color="0.75", lw=0.4)
@@ -59,7 +59,3 @@ def run(cfg, out_dir: Path) -> dict:
     pd.DataFrame(table).to_csv(out_dir / "drones.csv", index=False)
     return {f"{r['drone']}_elements": r["elements"] for r in table}
 
-
-def _normals(x, faces):
-    from sdexp.sim.drone import face_normals
-    return face_normals(x, faces), np.tile([0.0, 1.0, 0.0], (len(faces), 1))

@@ -74,18 +74,20 @@ def make_shape(cfg) -> Shape:
     return shape
 
 
-def mesh_shape(shape: Shape, edge_length: float, stop_energy: float, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
+def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh ``shape`` with the ``drone.mesh`` settings, through the cache."""
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
-               "h": shape.holes.round(12).tolist(), "edge": edge_length,
-               "stop": stop_energy if shape.dim == 3 else None}
+               "h": shape.holes.round(12).tolist(), "edge": mesh.edge_length,
+               "tetwild": [mesh.stop_energy, mesh.coarsen] if shape.dim == 3 else None}
 
     def make() -> dict[str, np.ndarray]:
         if shape.dim == 3:
             from sdexp.sim.tetmesh import tet_mesh
-            pts, el = tet_mesh(shape.vertices, shape.faces, edge_length, stop_energy)
+            pts, el = tet_mesh(shape.vertices, shape.faces, mesh.edge_length, mesh.stop_energy,
+                               mesh.coarsen)
         else:
             from sdexp.sim.trimesh import tri_mesh
-            pts, el = tri_mesh(shape.vertices, shape.faces, shape.holes, edge_length)
+            pts, el = tri_mesh(shape.vertices, shape.faces, shape.holes, mesh.edge_length)
         return {"points": pts, "elems": el}
 
     arrays = cached_arrays(cache_dir, key_of(f"mesh{shape.dim}d", MESH_FORMAT, payload), make)
@@ -155,7 +157,7 @@ def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatch
 def build_drone(cfg, cache_dir: str) -> Drone:
     """cfg is the ``drone`` config node (validated)."""
     shape = make_shape(cfg)
-    points, elems = mesh_shape(shape, cfg.mesh.edge_length, cfg.mesh.stop_energy, cache_dir)
+    points, elems = mesh_shape(shape, cfg.mesh, cache_dir)
     return assemble_drone(cfg, shape, points, elems)
 
 

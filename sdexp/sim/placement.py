@@ -7,7 +7,7 @@
    holds them at fractions 0.8, 0.8 (j-1)/j, ... of the way from the parent to the child.
 3. The sensors are spread over edges leaf edges first (they bend most), longest first, as
    evenly as the count allows; when there are fewer sensors than leaf edges, evenly spaced
-   leaf edges (by angle around the centre) get one each.
+   leaf edges (by angle around the centre from +X) get one each.
 4. The order of s is the order of the IMUs by angle around the centre in [0, 2 pi) measured
    from +X, then by distance from it.
 """
@@ -51,7 +51,7 @@ def tree_imus(center: np.ndarray, rotors: np.ndarray, num_sensors: int, root_rad
     if not edges:
         raise ValueError("no rotor lies away from the centre: the sensor tree has no edge")
     c = _planar(center[None])[0]
-    angle = lambda q: np.arctan2(q[1] - c[1], q[0] - c[0])  # noqa: E731
+    angle = lambda q: np.mod(np.arctan2(q[1] - c[1], q[0] - c[0]), 2 * np.pi)  # noqa: E731
     leaves = [e for e in edges if e[2]]
     inner = [e for e in edges if not e[2]]
     counts = {}

@@ -129,7 +129,7 @@ def test_tet_mesh_at_the_configured_resolution(shapes, name):
     spreads the meshing over its workers."""
     s, cfg = shapes[name], drone_cfg(name)
     points, tets = tet_mesh(s.vertices, s.faces, cfg.mesh.edge_length,
-                            cfg.mesh.get("stop_energy", 10.0))
+                            cfg.mesh.get("stop_energy", 10.0), cfg.mesh.get("coarsen", False))
     assert points.dtype == np.float64 and tets.dtype == np.int32
     assert points.flags.c_contiguous and tets.flags.c_contiguous
     assert np.array_equal(np.unique(tets), np.arange(len(points)))
