@@ -74,6 +74,31 @@ class NoiseConfig:
 
 
 @dataclass
+class DataConfig:
+    """Training data (supplement F): random thrust holds from the undeformed drone at rest."""
+    samples: int = 150_000          # transitions (one per 10 ms control step)
+    hold_seconds: float = 1.0       # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
+    episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
+    region: float = 30.0            # m from the start beyond which an episode restarts
+    workers: int = 2                # simulation processes
+    validation_fraction: float = 0.1  # held-out episodes
+
+
+@dataclass
+class ModelConfig:
+    """The d, g, h networks (Eq. 4) and their training (supplement F)."""
+    hidden: int = 128
+    blocks: int = 4                 # residual blocks of linear layers with ReLU
+    epochs: int = 50
+    batch_size: int = 512
+    lr: float = 1e-3
+    lr_decay: float = 0.8           # multiplied in every lr_step epochs
+    lr_step: int = 20
+    loss: str = "l1"                # l1 | l2
+    threads: int = 2                # torch intra-op threads
+
+
+@dataclass
 class ExperimentConfig:
     name: str = MISSING
     params: Dict[str, Any] = field(default_factory=dict)
@@ -86,6 +111,8 @@ class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
@@ -123,6 +150,19 @@ def validate(cfg: DictConfig | Config) -> None:
         _check(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),
                f"sim.obstacles[{i}]", OmegaConf.to_container(b) if isinstance(b, DictConfig) else b,
                f"min < max, {d.dim} coordinates each")
+    a, m = cfg.data, cfg.model
+    _check(a.samples > 0, "data.samples", a.samples, "> 0")
+    _check(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
+    _check(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
+    _check(a.region > 0, "data.region", a.region, "> 0 m")
+    _check(a.workers >= 1, "data.workers", a.workers, ">= 1")
+    _check(0 < a.validation_fraction < 1, "data.validation_fraction", a.validation_fraction, "in (0, 1)")
+    _check(m.hidden >= 1 and m.blocks >= 1, "model.hidden/blocks", (m.hidden, m.blocks), ">= 1")
+    _check(m.epochs >= 1, "model.epochs", m.epochs, ">= 1")
+    _check(m.batch_size >= 1, "model.batch_size", m.batch_size, ">= 1")
+    _check(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",
+           (m.lr, m.lr_decay, m.lr_step), "lr > 0, lr_decay in (0, 1], lr_step >= 1")
+    _check(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
     for key in ("angle_std_deg", "position_std", "angle_rate_std_deg", "velocity_std",
                 "rotor_std", "delay"):
         _check(getattr(n, key) >= 0, f"noise.{key}", getattr(n, key), ">= 0")
