@@ -183,31 +183,29 @@ _C_SIGNATURE = nb.types.int32(_ptr, _ptr, _ptr, _ptr, nb.types.float64, nb.types
 
 
 @nb.cfunc(_C_SIGNATURE, cache=True)
-def corotated_cfunc_3d(x, elems, Bm, vol, mu, lam, q, f, nv, e0, e1):
-    """corotated_range_3d behind kernels.c's C signature: the fallback when no compiler works."""
-    return corotated_range_3d(nb.carray(x, (nv, 3), np.float64), nb.carray(elems, (e1, 4), np.int32),
-                              nb.carray(Bm, (e1, 3, 3), np.float64), nb.carray(vol, (e1,), np.float64),
-                              mu, lam, nb.carray(q, (e1, 4), np.float64),
-                              nb.carray(f, (nv, 3), np.float64), e0, e1)
-
-
-@nb.njit(parallel=True, cache=True)
-def elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf):
-    """Run a C-signature tet kernel over all elements in one chunk per force buffer: thread t
-    adds its chunk's forces into its own buffer fbuf[t] (nt, nv, 3), so no two threads write
-    one vertex. Returns the number of inverted tets."""
-    ne = elems.shape[0]
-    nt = fbuf.shape[0]
+def corotated_cfunc_3d(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt):
+    """kernels.c's corotated_forces_3d in numba, behind the same C signature: the fallback
+    when no compiler works (one thread; chunk t still goes to buffer t)."""
+    xs = nb.carray(x, (nv, 3), np.float64)
+    el = nb.carray(elems, (ne, 4), np.int32)
+    bm = nb.carray(Bm, (ne, 3, 3), np.float64)
+    vo = nb.carray(vol, (ne,), np.float64)
+    qs = nb.carray(q, (ne, 4), np.float64)
+    fb = nb.carray(fbuf, (nt, nv, 3), np.float64)
     chunk = (ne + nt - 1) // nt
     inverted = 0
-    for t in nb.prange(nt):
-        fbuf[t] = 0.0
-        e0 = t * chunk
-        e1 = min(ne, e0 + chunk)
-        if e0 < e1:
-            inverted += kernel(x.ctypes.data, elems.ctypes.data, Bm.ctypes.data, vol.ctypes.data,
-                               mu, lam, q.ctypes.data, fbuf[t].ctypes.data, x.shape[0], e0, e1)
+    for t in range(nt):
+        fb[t] = 0.0
+        inverted += corotated_range_3d(xs, el, bm, vo, mu, lam, qs, fb[t], t * chunk, min(ne, (t + 1) * chunk))
     return inverted
+
+
+@nb.njit(cache=True)
+def elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf):
+    """Tet forces into one buffer per thread, fbuf (nt, nv, 3), by a kernel with kernels.c's
+    C signature (threads inside the kernel). Returns the number of inverted tets."""
+    return kernel(x.ctypes.data, elems.ctypes.data, Bm.ctypes.data, vol.ctypes.data, mu, lam,
+                  q.ctypes.data, fbuf.ctypes.data, x.shape[0], elems.shape[0], fbuf.shape[0])
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")

@@ -19,10 +19,10 @@ from functools import lru_cache
 from pathlib import Path
 
 SOURCE = Path(__file__).with_name("kernels.c")
-FLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-ffast-math", "-fopenmp-simd",
+FLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-ffast-math", "-fopenmp",
          "-shared", "-fPIC"]
 _P, _D, _I = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
-SIGNATURE = ctypes.CFUNCTYPE(ctypes.c_int, _P, _P, _P, _P, _D, _D, _P, _P, _I, _I, _I)
+SIGNATURE = ctypes.CFUNCTYPE(ctypes.c_int, _P, _P, _P, _P, _D, _D, _P, _P, _I, _I, _I)  # see kernels.c
 
 
 def _cpu_id() -> str:
