@@ -74,6 +74,14 @@ def build_fem(rest: np.ndarray, elems: np.ndarray, total_mass: float,
 # halve the speed (DESIGN.md).
 # --------------------------------------------------------------------------------------------
 
+@nb.njit(inline="always")
+def _rotation(qw, qx, qy, qz):
+    """Row-major entries of the rotation matrix of a unit quaternion."""
+    return (1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
+            2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
+            2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
+
+
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
 def corotated_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1):
     """Add the nodal forces of tets [e0, e1) into f (nv, 3); update their warm-start
@@ -103,15 +111,8 @@ def corotated_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1):
                + f02 * (f10 * f21 - f11 * f20))
         inverted += 1 if det <= 0.0 else 0
         qw = q[e, 0]; qx = q[e, 1]; qy = q[e, 2]; qz = q[e, 3]
-        r00 = 1.0; r01 = 0.0; r02 = 0.0; r10 = 0.0; r11 = 1.0; r12 = 0.0
-        r20 = 0.0; r21 = 0.0; r22 = 1.0
         for _ in range(POLAR_ITERATIONS):
-            r00 = 1.0 - 2.0 * (qy * qy + qz * qz); r01 = 2.0 * (qx * qy - qw * qz)
-            r02 = 2.0 * (qx * qz + qw * qy)
-            r10 = 2.0 * (qx * qy + qw * qz); r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-            r12 = 2.0 * (qy * qz - qw * qx)
-            r20 = 2.0 * (qx * qz - qw * qy); r21 = 2.0 * (qy * qz + qw * qx)
-            r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
             # omega = sum_i R_col_i x F_col_i / |sum_i R_col_i . F_col_i|
             wx = (r10 * f20 - r20 * f10) + (r11 * f21 - r21 * f11) + (r12 * f22 - r22 * f12)
             wy = (r20 * f00 - r00 * f20) + (r21 * f01 - r01 * f21) + (r22 * f02 - r02 * f22)
@@ -128,12 +129,7 @@ def corotated_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1):
             nz = qz + ax * qy - ay * qx + az * qw
             inv = 1.0 / np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
             qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv
-        r00 = 1.0 - 2.0 * (qy * qy + qz * qz); r01 = 2.0 * (qx * qy - qw * qz)
-        r02 = 2.0 * (qx * qz + qw * qy)
-        r10 = 2.0 * (qx * qy + qw * qz); r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-        r12 = 2.0 * (qy * qz - qw * qx)
-        r20 = 2.0 * (qx * qz - qw * qy); r21 = 2.0 * (qy * qz + qw * qx)
-        r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
         q[e, 0] = qw; q[e, 1] = qx; q[e, 2] = qy; q[e, 3] = qz
         # S = R^T F; strain = sym(S) - I
         s00 = r00 * f00 + r10 * f10 + r20 * f20
