@@ -74,6 +74,15 @@ def _cli(*args, cwd):
     return subprocess.run([sys.executable, "-m", "sdexp.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
+def test_cli_help_and_cfg_work_from_any_directory(tmp_path):
+    res = _cli("--help", cwd=tmp_path)
+    assert res.returncode == 0 and "drone: " in res.stdout and "experiment: " in res.stdout
+    res = _cli("drone=rod", "--cfg", "job", cwd=tmp_path)
+    assert res.returncode == 0 and "youngs_modulus: 6000" in res.stdout
+    res = _cli("drone.youngs_modulos=5", "--cfg", "job", cwd=tmp_path)
+    assert res.returncode != 0 and "youngs_modulos" in res.stderr
+
+
 def test_cli_errors_are_short_and_list_choices(tmp_path):
     res = _cli("drone=nope", cwd=tmp_path)
     assert res.returncode != 0 and "flower" in res.stderr and "rod" in res.stderr
