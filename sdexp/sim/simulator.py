@@ -13,11 +13,16 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
 from sdexp.sim.drone import Drone
 from sdexp.sim.fem import stable_substep
 from sdexp.sim.integrator import Body
 from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
+
+
+def _plain(cfg):
+    return OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
 
 
 # Below this many elements a second thread costs more in synchronisation (two parallel
@@ -35,8 +40,9 @@ class Failure:
 class Simulator:
     def __init__(self, drone: Drone, sim_cfg, noise_cfg, seed: int = 0):
         self.drone = drone
-        self.cfg = sim_cfg
-        self.noise = noise_cfg
+        # plain dataclasses: a DictConfig attribute read costs microseconds, every step
+        self.cfg = _plain(sim_cfg)
+        self.noise = _plain(noise_cfg)
         self.rng = np.random.default_rng(seed)
         fem = drone.fem
         dt_stable = stable_substep(fem, sim_cfg.stability_safety)
