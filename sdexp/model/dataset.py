@@ -1,7 +1,7 @@
-"""Training data for the learned dynamics (supplement F) -- INTERFACE STUB, being implemented.
+"""Training data for the learned dynamics (supplement F): generated, cached, split.
 
 A dataset is a set of transitions, one per 10 ms control step, computed from sensor readings
-only (noise and delay as configured):
+only (noise and delay as configured; how they are generated: sdexp/model/generate.py):
 
   keys (arrays of float32, first axis N transitions):
     s, s_dot        (N, n_s)   bend angles and rates           (sdexp.sim.sensors.State)
@@ -11,17 +11,55 @@ only (noise and delay as configured):
     s_dot_next, e_dot_next, p_dot_next   the rates read one control step later
     raw, raw_dot, raw_dot_next (N, n_raw)  the undecomposed state for the decomposition
                     ablation: concat(p, central IMU Euler angles, every peripheral IMU's
-                    world-frame Euler angles (2D: angle)) and its rates
+                    world-frame Euler angles (2D: angle)) and its rates;
+                    n_raw = dim + n_e (1 + n_s)
     episode         (N,) int32 episode index; t (N,) float32 time in the episode
+
+Within an episode, transition k+1's state is read from the same (noisy) readings as transition
+k's ``*_next`` rates, so ``p_dot[k + 1] == p_dot_next[k]``. Angles are stored as read, not
+unwrapped: yaw e_y, 2D angles and the peripheral Euler angles jump by 2 pi where they pass
++-pi, and Euler rates grow large near the gimbal lock (|e_z| -> 90 deg, a drone on its side).
+
+Generation runs in fixed chunks of ``chunk_samples`` transitions, each a pure function of the
+config, the seed and its index (see generate.py), on ``data.workers`` processes; the data is
+the same whatever the number of workers. Each chunk is written atomically to
+``<cache_dir>/<key>.chunks/`` as it finishes, so a killed run resumes with the chunks it has;
+the merged ``<cache_dir>/<key>.npz`` is written atomically and the chunk folder removed. The key
+hashes the drone, sim (less ``threads``), noise and data (less ``workers`` and
+``validation_fraction``) configs, the seed, the chunk size and DATA_FORMAT. A cache file whose
+format, key or arrays do not match is regenerated with a warning, never read.
+
+Not covered by the key: the simulator's code. After changing sdexp/sim/ in a way that changes
+its output, bump DATA_FORMAT (or clear the cache).
 """
 from __future__ import annotations
 
+import json
+import math
+import os
+import queue
+import shutil
+import time
+import warnings
+import zipfile
+from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
+
+from sdexp.cache import atomic_write, key_of
+from sdexp.errors import UserError
 
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
+
+DATA_FORMAT = 2  # 2: continuous bend angle s (sdexp.sim.sensors)
+# transitions per chunk (at least one episode's length): small enough to balance two workers
+# and lose little to a kill, big enough that few episodes are cut at a chunk's end
+CHUNK_SAMPLES = 4000
+FAILURES = ("inverted_element", "non_finite", "runaway_speed", "runaway_extent")
 
 
 @dataclass
@@ -33,11 +71,271 @@ class Dataset:
         return len(self.arrays["u"])
 
     def split(self, validation_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """(train, validation) transition indices, split by whole episodes."""
-        raise NotImplementedError
+        """(train, validation) transition indices, split by whole episodes: episodes in a random
+        order (``seed``) go to validation until it holds the count closest to
+        ``validation_fraction`` of the transitions (at least one episode, and at least one left
+        for training)."""
+        episode = self.arrays["episode"]
+        ids, counts = np.unique(episode, return_counts=True)
+        if len(ids) < 2:
+            raise UserError(f"the dataset holds {len(ids)} episode(s): a split by episodes needs two; "
+                            "raise data.samples")
+        order = np.random.default_rng(seed).permutation(len(ids))
+        cum = np.cumsum(counts[order])
+        n_val = int(np.argmin(np.abs(cum - validation_fraction * len(episode)))) + 1
+        n_val = min(max(n_val, 1), len(ids) - 1)
+        val = np.isin(episode, ids[order[:n_val]])
+        return np.flatnonzero(~val), np.flatnonzero(val)
 
 
-def load_dataset(cfg) -> Dataset:
+# ------------------------------------------------------------------------------ config -> key
+
+def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
+    """Everything that determines the data (plus ``cache_dir``, which does not)."""
+    data = cfg.data
+    if chunk_samples is None:
+        steps = int(round(data.episode_seconds / cfg.sim.control_dt))
+        chunk_samples = max(CHUNK_SAMPLES, steps)
+    sim = OmegaConf.to_container(cfg.sim, resolve=True)
+    sim.pop("threads", None)  # generation always runs single-threaded (generate.py)
+    return {
+        "drone": OmegaConf.to_container(cfg.drone, resolve=True),
+        "sim": sim,
+        "noise": OmegaConf.to_container(cfg.noise, resolve=True),
+        "data": {k: data[k] for k in ("samples", "hold_seconds", "episode_seconds", "region")},
+        "seed": int(cfg.seed),
+        "chunk_samples": int(chunk_samples),
+        "cache_dir": str(Path(cfg.cache_dir).expanduser()),
+    }
+
+
+def dataset_key(spec: dict) -> str:
+    return key_of("data", DATA_FORMAT, {k: v for k, v in spec.items() if k != "cache_dir"})
+
+
+# ------------------------------------------------------------------------------ files
+
+class _Unusable(Exception):
+    """A cache file that must not be read (other format or key, missing arrays, corrupt)."""
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, __meta__=np.array(json.dumps(meta, default=float)), **arrays)
+    atomic_write(path, write)
+
+
+def _read_npz(path: Path, expect: dict) -> tuple[dict[str, np.ndarray], dict]:
+    """The arrays and meta of ``path``; _Unusable unless meta matches ``expect`` (format, key,
+    ...), all KEYS are there and every array has meta['samples'] rows."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "__meta__" not in z.files:
+                raise _Unusable("no metadata")
+            meta = json.loads(str(z["__meta__"]))
+            for k, v in expect.items():
+                if meta.get(k) != v:
+                    raise _Unusable(f"{k} is {meta.get(k)!r}, expected {v!r}")
+            missing = [k for k in KEYS if k not in z.files]
+            if missing:
+                raise _Unusable(f"missing arrays {missing}")
+            arrays = {k: z[k] for k in KEYS}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as err:
+        raise _Unusable(f"unreadable ({type(err).__name__}: {err})") from None
+    n = meta.get("samples")
+    if any(len(a) != n for a in arrays.values()):
+        raise _Unusable(f"array lengths differ from samples = {n}")
+    return arrays, meta
+
+
+def _chunk_path(folder: Path, c: int) -> Path:
+    return folder / f"chunk-{c:05d}.npz"
+
+
+def _run_chunk(spec: dict, key: str, c: int, n: int, path: str, progress=None) -> dict:
+    """Generate chunk c and write it atomically; returns its summary."""
+    from sdexp.model.generate import generate_chunk
+    arrays, info = generate_chunk(spec, c, n, progress)
+    _write_npz(Path(path), arrays, {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n, "info": info})
+    return info
+
+
+_QUEUE = None
+
+
+def _init_worker(q) -> None:
+    global _QUEUE
+    _QUEUE = q
+
+
+def _pool_task(args) -> dict:
+    return _run_chunk(*args, progress=_QUEUE.put)
+
+
+# ------------------------------------------------------------------------------ generation
+
+_WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+               "MKL_NUM_THREADS": "1"}
+
+
+def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
+    from tqdm import tqdm
+
+    folder = final.with_suffix(".chunks")
+    samples, chunk = int(spec["data"]["samples"]), spec["chunk_samples"]
+    sizes = [min(chunk, samples - c * chunk) for c in range(math.ceil(samples / chunk))]
+    infos: dict[int, dict] = {}
+    for c, n in enumerate(sizes):
+        path = _chunk_path(folder, c)
+        if path.exists():
+            try:
+                infos[c] = _read_npz(path, {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n})[1]["info"]
+            except _Unusable:
+                pass  # regenerated below
+    resumed = len(infos)
+    todo = [c for c in range(len(sizes)) if c not in infos]
+    workers = max(1, min(workers, len(todo)))
+    if todo:
+        from sdexp.model.generate import _simulator
+        _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
+    bar = tqdm(total=samples, initial=sum(sizes[c] for c in infos), unit="samples", smoothing=0.05,
+               desc=f"data {spec['drone']['name']}", disable=None)
+    t0 = time.perf_counter()
+    try:
+        if todo and workers == 1:
+            for c in todo:
+                infos[c] = _run_chunk(spec, key, c, sizes[c], str(_chunk_path(folder, c)), bar.update)
+        elif todo:
+            _run_pool(spec, key, folder, sizes, todo, workers, infos, bar)
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+
+    # merge, in chunk order; episode ids made global
+    parts, offset = [], 0
+    for c, n in enumerate(sizes):
+        try:
+            arrays, _ = _read_npz(_chunk_path(folder, c), {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n})
+        except _Unusable as err:
+            try:  # another process generating the same data merged first and removed the chunks
+                arrays, meta = _read_npz(final, {"format": DATA_FORMAT, "key": key, "samples": samples})
+                return Dataset(arrays, {**meta, "cached": True})
+            except _Unusable:
+                raise RuntimeError(f"dataset chunk {_chunk_path(folder, c)} vanished or broke while "
+                                   f"merging ({err}); run again to regenerate it") from None
+        _, local = np.unique(arrays["episode"], return_inverse=True)
+        arrays["episode"] = (offset + local.ravel()).astype(np.int32)
+        offset = int(arrays["episode"].max()) + 1 if n else offset
+        parts.append(arrays)
+    arrays = {k: np.concatenate([a[k] for a in parts]) for k in KEYS}
+    ends = sum((Counter(infos[c]["ends"]) for c in infos), Counter())
+    generated = sum(sizes[c] for c in todo)
+    d = spec["drone"]
+    n_s, n_e = arrays["s"].shape[1], arrays["e"].shape[1]
+    meta = {
+        "format": DATA_FORMAT, "key": key, "samples": samples,
+        "drone": d["name"], "dim": int(d["dim"]), "n_s": n_s, "n_e": n_e, "m": arrays["u"].shape[1],
+        "n_raw": arrays["raw"].shape[1], "control_dt": float(spec["sim"]["control_dt"]),
+        "max_thrust": float(d["max_thrust"]), "noise": bool(spec["noise"]["enabled"]),
+        "seed": spec["seed"], **{f"data_{k}": v for k, v in spec["data"].items()},
+        "episodes": offset, "ends": dict(ends),
+        "failures": {r: ends.get(r, 0) for r in FAILURES},
+        "chunk_samples": chunk, "chunks": len(sizes), "chunks_resumed": resumed, "workers": workers,
+        "wall_seconds": wall, "generated_samples": generated,
+        "samples_per_second": generated / wall if generated else None,
+        # per-chunk sums over the workers: wall time, and CPU time (wall minus time lost to
+        # other processes on the same cores)
+        "worker_seconds": sum(infos[c]["seconds"] for c in todo),
+        "worker_cpu_seconds": sum(infos[c]["cpu_seconds"] for c in todo),
+        "raw_layout": "p (dim), frame Euler angles e (n_e), then each peripheral IMU's world-frame "
+                      "Euler angles (n_e each, 2D: its angle); rates alike; angles not unwrapped",
+    }
+    _write_npz(final, arrays, meta)
+    shutil.rmtree(folder, ignore_errors=True)
+    return Dataset(arrays, {**meta, "cached": False})
+
+
+def _run_pool(spec, key, folder, sizes, todo, workers, infos, bar) -> None:
+    """Chunks ``todo`` on ``workers`` spawned processes (one thread each: the environment they
+    start with says so); each writes its own chunk file, progress comes back through a queue.
+    A caller's script must guard its top level with ``if __name__ == "__main__":`` (spawn)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    saved = {k: os.environ.get(k) for k in _WORKER_ENV}
+    os.environ.update(_WORKER_ENV)
+    try:
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
+            # the children start on submit, with the environment above
+            futures = {pool.submit(_pool_task, (spec, key, c, sizes[c], str(_chunk_path(folder, c)))): c
+                       for c in todo}
+            _restore_env(saved)
+            try:
+                while futures:
+                    try:
+                        bar.update(q.get(timeout=0.2))
+                    except queue.Empty:
+                        pass
+                    for f in [f for f in futures if f.done()]:
+                        infos[futures.pop(f)] = f.result()  # re-raises a worker's error
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+    finally:
+        _restore_env(saved)
+    while True:
+        try:
+            bar.update(q.get_nowait())
+        except queue.Empty:
+            break
+
+
+def _restore_env(saved: dict) -> None:
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+# ------------------------------------------------------------------------------ entry point
+
+def load_dataset(cfg, chunk_samples: int | None = None) -> Dataset:
     """The dataset for cfg.drone / cfg.sim / cfg.noise / cfg.data / cfg.seed, from the cache
-    or generated (both cores, progress bar, atomic and resumable)."""
-    raise NotImplementedError
+    or generated (``data.workers`` processes, progress bar, atomic and resumable).
+
+    ``chunk_samples`` (default: max(CHUNK_SAMPLES, one episode)) is part of the data's identity;
+    tests shrink it. Raises UserError for a drone without peripheral sensors (there is no s for
+    d to predict; the method is for soft drones) and for a dataset whose training split cannot
+    fill one batch of ``model.batch_size``."""
+    d, data, batch = cfg.drone, cfg.data, int(cfg.model.batch_size)
+    if int(d.num_sensors) == 0:
+        raise UserError(f"drone {d.name} has no peripheral sensors (drone.num_sensors = 0): the "
+                        "learned dynamics need the bend angles s; add sensors")
+    if data.samples * (1 - data.validation_fraction) < batch:
+        raise UserError(f"data.samples = {data.samples} leaves about "
+                        f"{int(data.samples * (1 - data.validation_fraction))} training transitions "
+                        f"after the validation split, fewer than one batch (model.batch_size = {batch}); "
+                        "raise data.samples or lower model.batch_size")
+    spec = dataset_spec(cfg, chunk_samples)
+    key = dataset_key(spec)
+    final = Path(spec["cache_dir"]) / f"{key}.npz"
+    ds = None
+    if final.exists():
+        try:
+            arrays, meta = _read_npz(final, {"format": DATA_FORMAT, "key": key, "samples": int(data.samples)})
+            ds = Dataset(arrays, {**meta, "cached": True})
+        except _Unusable as err:
+            warnings.warn(f"sdexp: dataset cache {final} is unusable ({err}); regenerating", stacklevel=2)
+    if ds is None:
+        ds = _generate(spec, key, final, int(data.workers))
+    train, val = ds.split(float(data.validation_fraction), int(cfg.seed))
+    if len(train) < batch:
+        raise UserError(f"data.samples = {data.samples} gives {len(train)} training transitions after "
+                        f"the split by episodes, fewer than one batch (model.batch_size = {batch}); "
+                        "raise data.samples or lower model.batch_size")
+    return ds

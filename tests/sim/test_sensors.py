@@ -146,3 +146,16 @@ def test_average_of_symmetric_rotations_is_the_middle():
     d = np.array([0.0, 0.3, 0.0])
     avg = average_rotations(np.stack([matrix_from_euler(e + d), matrix_from_euler(e - d)]))
     np.testing.assert_allclose(avg, matrix_from_euler(e), atol=1e-9)
+
+
+def test_sideways_twist_keeps_the_bend_angle_continuous(plate):
+    """Twisting the right wing about its own radial axis tilts y_b sideways only: the bend
+    angle stays zero (the paper's beta * arccos form would read +-angle and flip sign)."""
+    x = plate.fem.rest.copy()
+    sel = x[:, 0] > 0.6
+    for angle in (-0.3, 0.3):
+        R = matrix_from_euler(np.array([angle, 0.0, 0.0]))  # about x: the wing's radial axis
+        xt = x.copy()
+        xt[sel] = (x[sel] - [0, T / 2, 0]) @ R.T + [0, T / 2, 0]
+        st = decompose(read_imus(0.0, xt, np.zeros_like(xt), plate.imus), plate.layout)
+        assert st.s[1] == pytest.approx(0.0, abs=1e-9)

@@ -1,0 +1,177 @@
+"""Generation of training transitions (supplement F): one chunk of data, from sensor readings only.
+
+A chunk is ``n`` consecutive transitions produced by episodes run one after another. Episode
+``j`` of chunk ``c`` draws everything random (thrust holds and sensor/rotor noise) from
+``SeedSequence(seed, spawn_key=(c, j))``, so a chunk is a pure function of the config, the seed,
+its index and its length, whichever process runs it. A chunk of length ``n`` is a prefix of the
+same chunk generated longer.
+
+Every episode starts from ``Simulator.reset()`` (the undeformed drone at rest), every rotor holds
+a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw. One transition per
+control step: the state decomposed from the readings before the step, the command, and the
+rates decomposed from the readings after it. An episode ends on a failure (the failing step is
+dropped: its readings are frozen, not measured), after the step that takes p further than
+``data.region`` from the start, after ``data.episode_seconds``, or at the end of the chunk.
+
+The simulator always runs single-threaded here: the FEM force sum is not bitwise the same with
+two threads, and the data must not depend on the number of worker processes.
+"""
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from typing import Callable
+
+import numba as nb
+import numpy as np
+from omegaconf import OmegaConf
+
+from sdexp.errors import UserError
+from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
+
+# An episode that produces no transition (the drone fails in its first step from rest) this many
+# times in a row means the drone cannot be simulated at all; stop instead of looping forever.
+MAX_EMPTY_EPISODES = 20
+
+# per-process simulator, reused across chunks: (config json, drone, simulator)
+_CACHED: dict = {}
+
+
+def widths(dim: int, n_s: int, m: int) -> dict[str, int]:
+    """Per-transition width of every float array."""
+    n_e = 3 if dim == 3 else 1
+    n_raw = dim + n_e + n_s * n_e
+    return {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim, "u": m,
+            "s_dot_next": n_s, "e_dot_next": n_e, "p_dot_next": dim,
+            "raw": n_raw, "raw_dot": n_raw, "raw_dot_next": n_raw}
+
+
+def raw_state(r: Readings, st: State, layout: SensorLayout) -> tuple[np.ndarray, np.ndarray]:
+    """The undecomposed state: (p, frame Euler angles, every peripheral IMU's world-frame Euler
+    angles (2D: its angle)) and its rates. Angles are stored as read (yaw and 2D angles in
+    (-pi, pi], not unwrapped); rates come from the gyroscopes by the chain rule
+    (sdexp.sim.rotations.euler_from_matrix / euler_rates, compiled here: 2 us instead of 35)."""
+    pi = layout.periph_idx
+    if layout.dim == 2:
+        ang, rate = r.rot[pi], r.omega[pi]
+    else:
+        ang, rate = _euler_and_rates(r.rot, r.omega, pi)
+    return (np.concatenate((st.p, st.e, ang.ravel())),
+            np.concatenate((st.p_dot, st.e_dot, rate.ravel())))
+
+
+@nb.njit(cache=True)
+def _euler_and_rates(rot, omega, idx):
+    """euler_from_matrix(rot[idx]) and euler_rates(e, omega[idx]) with E(e)^-1 in closed form:
+    omega = E(e) e_dot, E's columns (cy cz, sz, -sy cz), (0, 1, 0), (sy, 0, cy)."""
+    n = len(idx)
+    ang = np.empty((n, 3))
+    rate = np.empty((n, 3))
+    for k in range(n):
+        R, w = rot[idx[k]], omega[idx[k]]
+        ez = np.arcsin(min(1.0, max(-1.0, R[1, 0])))
+        ex = np.arctan2(-R[1, 2], R[1, 1])
+        ey = np.arctan2(-R[2, 0], R[0, 0])
+        cy, sy, sz = np.cos(ey), np.sin(ey), np.sin(ez)
+        exd = (cy * w[0] - sy * w[2]) / np.cos(ez)
+        ang[k, 0], ang[k, 1], ang[k, 2] = ex, ey, ez
+        rate[k, 0], rate[k, 1], rate[k, 2] = exd, w[1] - sz * exd, sy * w[0] + cy * w[2]
+    return ang, rate
+
+
+def _simulator(spec: dict):
+    """Build (or reuse, within this process) the drone and a single-threaded simulator."""
+    from sdexp.config import DroneConfig, NoiseConfig, SimConfig
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.simulator import Simulator
+
+    tag = json.dumps([spec["drone"], spec["sim"], spec["noise"], spec["cache_dir"]], sort_keys=True, default=str)
+    if _CACHED.get("tag") != tag:
+        drone_cfg = OmegaConf.merge(OmegaConf.structured(DroneConfig), spec["drone"])
+        sim_cfg = OmegaConf.merge(OmegaConf.structured(SimConfig), spec["sim"], {"threads": 1})
+        noise_cfg = OmegaConf.merge(OmegaConf.structured(NoiseConfig), spec["noise"])
+        drone = build_drone(drone_cfg, spec["cache_dir"])
+        sim = Simulator(drone, sim_cfg, noise_cfg, 0)
+        _CACHED.update(tag=tag, drone=drone, sim=sim)
+    return _CACHED["drone"], _CACHED["sim"]
+
+
+def generate_chunk(spec: dict, chunk: int, n: int,
+                   progress: Callable[[int], None] | None = None) -> tuple[dict[str, np.ndarray], dict]:
+    """Transitions ``[chunk * chunk_samples, chunk * chunk_samples + n)`` of the dataset, as
+    float32 arrays (``episode`` local to the chunk), and a summary of how the episodes ended."""
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    drone, sim = _simulator(spec)
+    layout = drone.layout
+    data = spec["data"]
+    dt = float(spec["sim"]["control_dt"])
+    hold = max(1, int(round(data["hold_seconds"] / dt)))
+    ep_steps = max(1, int(round(data["episode_seconds"] / dt)))
+    region2 = float(data["region"]) ** 2
+    tmax, m = drone.max_thrust, drone.num_rotors
+    w = widths(layout.dim, layout.n_s, m)
+    out = {k: np.empty((n, v)) for k, v in w.items()}
+    episode = np.empty(n, dtype=np.int32)
+    tt = np.empty(n)
+    ends: Counter = Counter()
+    s, s_dot, e, e_dot, p, p_dot, u_a = (out[k] for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u"))
+    s_n, e_n, p_n = out["s_dot_next"], out["e_dot_next"], out["p_dot_next"]
+    raw, raw_d, raw_n = out["raw"], out["raw_dot"], out["raw_dot_next"]
+
+    i, ep, empty, last_report = 0, 0, 0, 0
+    while i < n:
+        ss_thrust, ss_noise = np.random.SeedSequence(spec["seed"], spawn_key=(chunk, ep)).spawn(2)
+        rng = np.random.default_rng(ss_thrust)
+        sim.rng = np.random.default_rng(ss_noise)
+        r = sim.reset()
+        st = decompose(r, layout)
+        rw, rwd = raw_state(r, st, layout)
+        p0 = st.p.copy()
+        start, k = i, 0
+        while True:
+            if k % hold == 0:
+                u = rng.uniform(-tmax, tmax, m)
+            r = sim.step(u)
+            if not sim.alive:
+                ends[sim.failure.reason] += 1
+                break
+            nxt = decompose(r, layout)
+            rw1, rwd1 = raw_state(r, nxt, layout)
+            s[i], s_dot[i], e[i], e_dot[i], p[i], p_dot[i] = st.s, st.s_dot, st.e, st.e_dot, st.p, st.p_dot
+            u_a[i], s_n[i], e_n[i], p_n[i] = u, nxt.s_dot, nxt.e_dot, nxt.p_dot
+            raw[i], raw_d[i], raw_n[i] = rw, rwd, rwd1
+            episode[i], tt[i] = ep, k * dt
+            i += 1
+            k += 1
+            st, rw, rwd = nxt, rw1, rwd1
+            if progress is not None and i - last_report >= 200:
+                progress(i - last_report)
+                last_report = i
+            d = st.p - p0
+            if d @ d > region2:
+                ends["region"] += 1
+                break
+            if k >= ep_steps:
+                ends["timeout"] += 1
+                break
+            if i >= n:
+                ends["chunk_end"] += 1
+                break
+        if i == start:
+            empty += 1
+            if empty >= MAX_EMPTY_EPISODES:
+                reason = sim.failure.reason if sim.failure else "unknown"
+                raise UserError(f"drone {drone.name}: {empty} episodes in a row failed in their first "
+                                f"step from rest ({reason}); check drone.* and sim.* (e.g. sim.substep)")
+        else:
+            empty = 0
+        ep += 1
+    if progress is not None and i > last_report:
+        progress(i - last_report)
+    arrays = {k: v.astype(np.float32) for k, v in out.items()}
+    arrays["episode"] = episode
+    arrays["t"] = tt.astype(np.float32)
+    info = {"episodes": int(len(np.unique(episode))), "ends": dict(ends),
+            "seconds": time.perf_counter() - t_start, "cpu_seconds": time.process_time() - cpu_start}
+    return arrays, info
