@@ -27,7 +27,7 @@ import numba as nb
 import numpy as np
 
 from sdexp.errors import UserError
-from sdexp.sim.rotations import average_rotations, euler_from_matrix, euler_rates
+from sdexp.sim.rotations import average_rotations
 
 
 @dataclass
@@ -233,15 +233,32 @@ def decompose(r: Readings, layout: SensorLayout) -> State:
         s = beta * np.angle(np.exp(1j * (r.rot[pi] - th)))
         return State(s, np.array([th]), p, beta * (r.omega[pi] - w), np.array([w]), p_dot)
     Rc = r.rot[fi[0]] if len(fi) == 1 else average_rotations(r.rot[fi])
-    wc = r.omega[fi].mean(axis=0)
-    e = euler_from_matrix(Rc)
-    yw = r.rot[pi][:, :, 1]                               # peripheral Y axes in the world
-    yb = yw @ Rc                                           # = Rc^T yw, row-wise
-    ybd = np.cross(r.omega[pi] - wc, yw) @ Rc              # its rate in the body frame
-    # the bend in the plane through the body's Y axis and the IMU's rest direction r_hat:
-    # a > 0 when y_b tilts towards the centre (the wing is raised)
-    a, c = -np.sum(yb * layout.r_hat, axis=1), yb[:, 1]
-    a_dot, c_dot = -np.sum(ybd * layout.r_hat, axis=1), ybd[:, 1]
-    s = np.arctan2(a, c)
-    s_dot = (c * a_dot - a * c_dot) / (a * a + c * c)
-    return State(s, e, p, s_dot, euler_rates(e, wc), p_dot)
+    s, s_dot, e, e_dot = _bend_and_attitude(Rc, r.omega[fi].mean(axis=0), r.rot[pi], r.omega[pi], layout.r_hat)
+    return State(s, e, p, s_dot, e_dot, p_dot)
+
+
+@nb.njit(cache=True)
+def _bend_and_attitude(Rc, wc, rot_p, omega_p, r_hat):
+    """s, s_dot of the peripheral IMUs against the body frame Rc (angular velocity wc), and the
+    Euler angles and rates of Rc (the convention of sdexp.sim.rotations, in closed form)."""
+    n = rot_p.shape[0]
+    s = np.empty(n); s_dot = np.empty(n)
+    for i in range(n):
+        yw = rot_p[i, :, 1]                                # peripheral Y axis in the world
+        yb = Rc.T @ yw
+        ybd = Rc.T @ np.cross(omega_p[i] - wc, yw)         # its rate in the body frame
+        # the bend in the plane through the body's Y axis and the IMU's rest direction r_hat:
+        # a > 0 when y_b tilts towards the centre (the wing is raised)
+        a, c = -(yb @ r_hat[i]), yb[1]
+        a_dot, c_dot = -(ybd @ r_hat[i]), ybd[1]
+        s[i] = np.arctan2(a, c)
+        s_dot[i] = (c * a_dot - a * c_dot) / (a * a + c * c)
+    ez = np.arcsin(min(1.0, max(-1.0, Rc[1, 0])))
+    ex = np.arctan2(-Rc[1, 2], Rc[1, 1])
+    ey = np.arctan2(-Rc[2, 0], Rc[0, 0])
+    cy, sy, cz, sz = np.cos(ey), np.sin(ey), np.cos(ez), np.sin(ez)
+    # omega = E(e) e_dot with E's columns (cy cz, sz, -sy cz), (0, 1, 0), (sy, 0, cy)
+    ex_dot = (cy * wc[0] - sy * wc[2]) / cz
+    ez_dot = sy * wc[0] + cy * wc[2]
+    ey_dot = wc[1] - ex_dot * sz
+    return s, s_dot, np.array([ex, ey, ez]), np.array([ex_dot, ey_dot, ez_dot])
