@@ -17,8 +17,10 @@ from sdexp.errors import UserError
 
 # name -> "module:function"; each function is run(cfg, out_dir) -> dict of metrics
 RUNNERS = {
+    "ablation_decomposition": "sdexp.eval.ablation_decomposition:run",
     "bench_sim": "sdexp.eval.bench_sim:run",
     "gallery": "sdexp.eval.gallery:run",
+    "model_test": "sdexp.eval.model_test:run",
     "validate_fem": "sdexp.eval.validate_fem:run",
 }
 

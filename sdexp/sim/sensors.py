@@ -243,10 +243,11 @@ def _bend_and_attitude(Rc, wc, rot_p, omega_p, r_hat):
     Euler angles and rates of Rc (the convention of sdexp.sim.rotations, in closed form)."""
     n = rot_p.shape[0]
     s = np.empty(n); s_dot = np.empty(n)
+    Rt = np.ascontiguousarray(Rc.T)
     for i in range(n):
-        yw = rot_p[i, :, 1]                                # peripheral Y axis in the world
-        yb = Rc.T @ yw
-        ybd = Rc.T @ np.cross(omega_p[i] - wc, yw)         # its rate in the body frame
+        yw = np.ascontiguousarray(rot_p[i, :, 1])          # peripheral Y axis in the world
+        yb = Rt @ yw
+        ybd = Rt @ np.cross(omega_p[i] - wc, yw)           # its rate in the body frame
         # the bend in the plane through the body's Y axis and the IMU's rest direction r_hat:
         # a > 0 when y_b tilts towards the centre (the wing is raised)
         a, c = -(yb @ r_hat[i]), yb[1]

@@ -1,0 +1,388 @@
+"""``sdexp experiment=model_test``: do the learned d, g, h (and their linearisation) capture the
+dynamics? The two tests of the paper's "Testing the Linearized Networks".
+
+(a) Acceleration. The networks predict next-frame velocities from current ones; a network that
+    only copied its input would still predict velocities well. So on the held-out episodes
+    (``Dataset.split(data.validation_fraction, seed)``) the acceleration reconstructed from the
+    prediction, (pred_next - current) / alpha, is compared with the measured one,
+    (next - current) / alpha, per channel: R^2 = 1 - SS_res / SS_tot in ``acceleration_r2.csv``
+    (``r2_no_change`` is the R^2 of predicting zero acceleration, the copying network's score),
+    overlaid in ``acceleration.png``.
+
+(b) Rollout. A test flight of ``rollout_seconds`` under random thrust holds like the training
+    data (``data.hold_seconds``, U[-Tmax, Tmax] per rotor): the longest held-out episode if one
+    is long enough, else (the usual case: data episodes end after ``data.episode_seconds`` or on
+    leaving ``data.region``) a dedicated flight simulated with ``Simulator`` and read through
+    the sensors only, with the configured noise and delay, seed ``seed + test_seed_offset``
+    (a flight the simulator fails -- blow-up under the wild tumbling -- is retried with the next
+    seed, up to ``flight_attempts``; the longest is kept and ``flight_seconds`` says its length).
+    From the flight's first state and driven by its logged commands, three predictions:
+      linearized   Eq. 5 relinearised every ``relinearize_every`` steps (5 = 20 Hz) at the current
+                   *predicted* state and command: x_{k+1} = x_k + alpha (f* + A (x_k - x*) + B (u_k - u*)),
+                   open loop for the whole flight (the paper's "Jacobian Matrix Update");
+      nonlinear    x_{k+1} = x_k + alpha f(x_k, u_k), open loop;
+      horizon      both restarted from the true state every ``horizon_seconds``: short-term
+                   accuracy, the median error over the windows against the time since the
+                   restart (a diverged window counts as infinitely wrong), with a
+                   constant-velocity extrapolation for scale.
+    Errors over time in ``rollout.csv`` (s, e: RMS over channels in rad, e wrapped to (-pi, pi];
+    p, p_dot: Euclidean norm; s_dot, e_dot: RMS), ``rollout_horizon.csv``, plot ``rollout.png``.
+
+Training curves of the networks: ``training.csv`` and ``training.png``.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from sdexp.model.dynamics import LearnedDynamics, state_sizes
+from sdexp.model.training import DECOMPOSED, design, history_table, loss_plot, train_models
+
+GROUPS = ("s", "e", "p")
+VEL = {"s": "s_dot", "e": "e_dot", "p": "p_dot"}
+
+
+def prepare(cfg, progress: bool = True):
+    """(dataset, trained d/g/h, LearnedDynamics) for cfg, from the caches where possible."""
+    from sdexp.model.dataset import load_dataset
+
+    data = load_dataset(cfg)
+    trained = train_models(data, cfg.model, int(cfg.seed), cfg.cache_dir, float(cfg.data.validation_fraction),
+                           DECOMPOSED, progress)
+    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt))
+    return data, trained, dyn
+
+
+def channel_names(sizes: dict) -> dict[str, list[str]]:
+    axes = ["x", "y", "z"][: sizes["dim"]]
+    e = ["e_x", "e_y", "e_z"] if sizes["n_e"] == 3 else ["theta"]
+    return {"s": [f"s_{i + 1}" for i in range(sizes["n_s"])], "e": e, "p": [f"p_{a}" for a in axes]}
+
+
+# ------------------------------------------------------------------------------ (a) acceleration
+
+@torch.no_grad()
+def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float):
+    """Per-channel R^2 of the reconstructed acceleration on the given transitions; returns
+    (table, {group: (true accel, predicted accel)}) with rows in val_idx order."""
+    names = channel_names(state_sizes(data))
+    rows, series = [], {}
+    for spec, group in zip(DECOMPOSED, GROUPS):
+        if spec.name not in trained.nets:
+            continue
+        X, Y, base = design(data, spec, val_idx)
+        net = trained.nets[spec.name]
+        pred = np.concatenate([net(torch.from_numpy(X[i:i + 65536])).numpy() for i in range(0, len(X), 65536)])
+        cur = X[:, base]
+        a_true, a_pred = (Y - cur) / alpha, (pred - cur) / alpha
+        series[group] = (a_true, a_pred)
+        ss_tot = ((a_true - a_true.mean(0)) ** 2).sum(0)
+        ss_res = ((a_pred - a_true) ** 2).sum(0)
+        ss_zero = (a_true ** 2).sum(0)
+        for j, name in enumerate(names[group]):
+            rows.append({"group": group, "channel": name, "network": spec.name,
+                         "r2": 1 - ss_res[j] / ss_tot[j], "r2_no_change": 1 - ss_zero[j] / ss_tot[j],
+                         "mae_accel": float(np.abs(a_pred[:, j] - a_true[:, j]).mean()),
+                         "std_accel": float(a_true[:, j].std()), "samples": len(X)})
+    return pd.DataFrame(rows), series
+
+
+def acceleration_plot(data, val_idx, series, table, alpha: float, seconds: float, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ep = data.arrays["episode"][val_idx]
+    ids, counts = np.unique(ep, return_counts=True)
+    longest = ids[np.argmax(counts)]
+    sel = np.flatnonzero(ep == longest)
+    sel = sel[np.argsort(data.arrays["t"][val_idx][sel])][: max(2, int(round(seconds / alpha)))]
+    t = data.arrays["t"][val_idx][sel]
+    groups = list(series)
+    ncol = 3
+    fig, axes = plt.subplots(len(groups), ncol, figsize=(12, 2.6 * len(groups)), squeeze=False)
+    for r, g in enumerate(groups):
+        a_true, a_pred = series[g]
+        tab = table[table["group"] == g].reset_index(drop=True)
+        order = np.argsort(-tab["std_accel"].to_numpy())[:ncol]   # the liveliest channels
+        for c in range(ncol):
+            ax = axes[r, c]
+            if c >= len(order):
+                ax.axis("off")
+                continue
+            j = order[c]
+            ax.plot(t, a_true[sel, j], color="k", lw=1.2, label="measured")
+            ax.plot(t, a_pred[sel, j], color="tab:red", lw=1.0, ls="--", label="from predicted velocity")
+            ax.set_title(f"{tab['channel'][j]}: accel., R^2 = {tab['r2'][j]:.3f}", fontsize=9)
+            ax.grid(alpha=0.3)
+            if r == len(groups) - 1:
+                ax.set_xlabel("t (s)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("Held-out episode: measured acceleration vs (predicted next velocity - velocity) / alpha")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------ (b) rollout
+
+def _episode_from_data(data, val_idx, steps: int):
+    """The longest held-out episode as (X (T, n), U (T-1, m)) if it has >= steps + 1 states."""
+    a = data.arrays
+    ep = a["episode"][val_idx]
+    ids, counts = np.unique(ep, return_counts=True)
+    if counts.max() < steps + 1:
+        return None
+    sel = val_idx[ep == ids[np.argmax(counts)]]
+    sel = sel[np.argsort(a["t"][sel])][: steps + 1]
+    X = np.concatenate([a[k][sel] for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot")], axis=1).astype(np.float64)
+    return X, a["u"][sel[:-1]].astype(np.float64)
+
+
+def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
+    """A test flight under random thrust holds, read through the sensors only:
+    (X (T+1, n) decomposed states, U (T, m) commands, seed used). A flight that fails is
+    retried with the next seed; the longest one is kept."""
+    from tqdm import tqdm
+
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.sensors import decompose
+    from sdexp.sim.simulator import Simulator
+
+    drone = build_drone(cfg.drone, cfg.cache_dir)
+    dt = float(cfg.sim.control_dt)
+    steps = int(round(seconds / dt))
+    hold = max(1, int(round(float(cfg.data.hold_seconds) / dt)))
+    best = None
+    for attempt in range(attempts):
+        sim = Simulator(drone, cfg.sim, cfg.noise, seed + attempt)
+        rng = np.random.default_rng(seed + attempt)
+        xs = [decompose(sim.reset(), drone.layout).x]
+        us = []
+        for k in tqdm(range(steps), desc="test flight", leave=False, disable=None):
+            if k % hold == 0:
+                u = rng.uniform(-drone.max_thrust, drone.max_thrust, drone.num_rotors)
+            r = sim.step(u)
+            if not sim.alive:
+                print(f"sdexp: test flight {attempt}: {sim.failure.reason} at {sim.failure.time:.2f} s, retrying")
+                break
+            us.append(u.copy())
+            xs.append(decompose(r, drone.layout).x)
+        if best is None or len(us) > len(best[1]):
+            best = (np.array(xs), np.array(us).reshape(len(us), drone.num_rotors), seed + attempt)
+        if len(us) == steps:
+            break
+    return best
+
+
+def rollout(dyn: LearnedDynamics, x0: np.ndarray, U: np.ndarray, every: int, linear: bool = True,
+            X_true: np.ndarray | None = None, restart: int | None = None):
+    """Predicted states (T+1, n) from x0 under commands U (T, m). linear: Eq. 5 relinearised
+    every ``every`` steps at the predicted state; else the explicit nonlinear step. With
+    ``restart`` and ``X_true`` the prediction restarts from the truth every ``restart`` steps.
+    A prediction that leaves all sense (non-finite or > 1e6) is NaN from there on.
+    Returns (states, seconds per linearisation call)."""
+    T = len(U)
+    X = np.full((T + 1, len(x0)), np.nan)
+    X[0] = x = np.asarray(x0, dtype=np.float64)
+    lin_times = []
+    f0 = A = B = xs = us = None
+    for k in range(T):
+        restarting = bool(restart) and k % restart == 0
+        if restarting:   # X[k] keeps the previous window's prediction
+            x = X_true[k].astype(np.float64)
+        elif np.isnan(x[0]):
+            continue     # diverged in this window: NaN until the next restart
+        if linear:
+            if k % every == 0 or restarting:
+                t0 = time.perf_counter()
+                f0, A, B = dyn.linearize(x, U[k])
+                lin_times.append(time.perf_counter() - t0)
+                xs, us = x.copy(), U[k].copy()
+            x = x + dyn.alpha * (f0 + A @ (x - xs) + B @ (U[k] - us))
+        else:
+            x = dyn.step(x, U[k])
+        if not np.all(np.isfinite(x)) or np.abs(x).max() > 1e6:
+            if not restart:
+                break
+            x = np.full_like(x, np.nan)
+            continue
+        X[k + 1] = x
+    return X, lin_times
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def state_errors(dyn: LearnedDynamics, X_hat: np.ndarray, X_true: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-time error of each block: s, e, s_dot, e_dot RMS over channels (e wrapped), p, p_dot
+    Euclidean norm."""
+    out = {}
+    for k, sl in dyn.slices.items():
+        if k == "u" or sl.stop == sl.start:
+            continue
+        d = X_hat[:, sl] - X_true[:, sl]
+        if k == "e":
+            d = _wrap(d)
+        out[k] = np.linalg.norm(d, axis=1) if k in ("p", "p_dot") else np.sqrt(np.mean(d ** 2, axis=1))
+    return out
+
+
+def rollout_plot(t, X_true, preds: dict, errs: dict, dyn, names, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sl = dyn.slices
+    show = [("p", 1, f"{names['p'][1]} (m)"), ("p", 0, f"{names['p'][0]} (m)"),
+            ("e", 0, f"{names['e'][0]} (rad)")]
+    if dyn.n_s:
+        show.append(("s", 0, f"{names['s'][0]} (rad)"))
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7))
+    for ax, (blk, j, label) in zip(axes.flat[: len(show)], show):
+        i = sl[blk].start + j
+        ax.plot(t, X_true[:, i], color="k", lw=1.2, label="ground truth")
+        for (name, X), c in zip(preds.items(), ("tab:red", "tab:blue")):
+            y = _wrap(X[:, i]) if blk == "e" else X[:, i]
+            ax.plot(t, y, color=c, lw=0.9, ls="--", label=name)
+        lo, hi = np.nanmin(X_true[:, i]), np.nanmax(X_true[:, i])
+        pad = 0.3 * (hi - lo) + 1e-3
+        ax.set_ylim(lo - pad, hi + pad)   # a diverging prediction leaves the frame, not the truth
+        ax.set_xlim(0, t[-1])
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("t (s)")
+        ax.grid(alpha=0.3)
+    axes.flat[0].legend(fontsize=8)
+    for ax in axes.flat[len(show):5]:
+        ax.axis("off")
+    ax = axes.flat[5]
+    for (name, e), ls in zip(errs.items(), ("-", "--")):
+        for (blk, v), c in zip(e.items(), plt.rcParams["axes.prop_cycle"].by_key()["color"]):
+            if blk in ("s", "e", "p"):
+                ax.semilogy(t, v, color=c, ls=ls, lw=0.9, label=f"{blk} ({name})")
+    ax.set_xlim(0, t[-1])
+    ax.set_title("error (s, e: RMS rad; p: m); ends where a prediction diverges", fontsize=9)
+    ax.set_xlabel("t (s)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, ncol=2)
+    fig.suptitle("Open-loop prediction of a test flight from its logged commands")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------ runner
+
+def run(cfg, out_dir: Path) -> dict:
+    p = cfg.experiment.params
+    alpha = float(cfg.sim.control_dt)
+    data, trained, dyn = prepare(cfg)
+    out_dir = Path(out_dir)
+    history_table(trained).to_csv(out_dir / "training.csv", index=False)
+    loss_plot(trained, out_dir / "training.png", f"{cfg.drone.name}: d, g, h training")
+    metrics: dict = {"nets_cached": trained.cached, "train_wall_seconds": float(trained.wall_seconds)}
+    for n, h in trained.history.items():
+        metrics[f"train_seconds_{n}"] = float(trained.seconds[n])
+        metrics[f"val_l1_{n}"] = float(h["val_l1"][h["selected"]].iloc[0] if h["selected"].any() else h["val_l1"].iloc[-1])
+        metrics[f"epoch_kept_{n}"] = int(h["epoch"][h["selected"]].iloc[0]) if h["selected"].any() else int(h["epoch"].iloc[-1])
+
+    # (a) acceleration on held-out episodes
+    _, val_idx = data.split(float(cfg.data.validation_fraction), int(cfg.seed))
+    table, series = acceleration_test(data, trained, val_idx, alpha)
+    table.to_csv(out_dir / "acceleration_r2.csv", index=False)
+    acceleration_plot(data, val_idx, series, table, alpha, float(p.get("plot_seconds", 5.0)),
+                      out_dir / "acceleration.png")
+    for g, grp in table.groupby("group", sort=False):
+        metrics[f"r2_mean_{VEL[g]}"] = float(grp["r2"].mean())
+    metrics["r2_mean"] = float(table["r2"].mean())
+    metrics["r2_no_change_mean"] = float(table["r2_no_change"].mean())
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+
+    # (b) rollout of the linearized model against a test flight
+    seconds = float(p.get("rollout_seconds", 70.0))
+    every = int(p.get("relinearize_every", 5))
+    steps = int(round(seconds / alpha))
+    found = _episode_from_data(data, val_idx, steps)
+    if found is not None:
+        X_true, U = found
+        metrics["flight_source"] = "held-out episode"
+    else:
+        X_true, U, used_seed = simulate_flight(cfg, seconds, int(cfg.seed) + int(p.get("test_seed_offset", 10000)),
+                                               int(p.get("flight_attempts", 5)))
+        metrics["flight_source"] = f"simulated, seed {used_seed}"
+    T = len(U)
+    t = alpha * np.arange(T + 1)
+    metrics["flight_seconds"] = float(T * alpha)
+    X_lin, lin_times = rollout(dyn, X_true[0], U, every, linear=True)
+    X_nl, _ = rollout(dyn, X_true[0], U, every, linear=False)
+    restart = max(1, int(round(float(p.get("horizon_seconds", 1.0)) / alpha)))
+    X_hz, _ = rollout(dyn, X_true[0], U, every, linear=True, X_true=X_true, restart=restart)
+    X_hz_nl, _ = rollout(dyn, X_true[0], U, every, linear=False, X_true=X_true, restart=restart)
+    errs = {"linearized": state_errors(dyn, X_lin, X_true), "nonlinear": state_errors(dyn, X_nl, X_true)}
+    cols = {"t": t}
+    for mode, e in errs.items():
+        cols.update({f"{mode}_{k}": v for k, v in e.items()})
+    pd.DataFrame(cols).to_csv(out_dir / "rollout.csv", index=False)
+    rollout_plot(t, X_true, {"linearized (20 Hz)": X_lin, "nonlinear": X_nl}, errs, dyn,
+                 channel_names(state_sizes(data)), out_dir / "rollout.png")
+
+    # horizon: error against time since the restart from the truth, median over the windows
+    const_vel = X_true.copy()
+    for k0 in range(0, T, restart):
+        k1 = min(k0 + restart, T)
+        tau = alpha * np.arange(k1 - k0 + 1)[:, None]
+        x0 = X_true[k0]
+        seg = np.repeat(x0[None], k1 - k0 + 1, axis=0)
+        for blk, vel in VEL.items():
+            seg[:, dyn.slices[blk]] = x0[dyn.slices[blk]] + tau * x0[dyn.slices[vel]]
+        const_vel[k0 + 1:k1 + 1] = seg[1:]   # index k0 keeps the previous window's prediction
+    hz = {"linearized": state_errors(dyn, X_hz, X_true), "nonlinear": state_errors(dyn, X_hz_nl, X_true),
+          "constant_velocity": state_errors(dyn, const_vel, X_true)}
+    rows = []
+    for j in range(1, restart + 1):
+        # predictions j steps after a restart: the state at index k0 + j
+        idx = np.arange(j, T + 1, restart)
+        row = {"tau": j * alpha}
+        for mode, e in hz.items():
+            for blk, v in e.items():
+                w = v[idx]
+                w = np.where(np.isfinite(w), w, np.inf)   # a diverged window counts as the worst
+                row[f"{mode}_{blk}"] = float(np.median(w)) if len(idx) else np.nan
+        rows.append(row)
+    horizon = pd.DataFrame(rows)
+    horizon.to_csv(out_dir / "rollout_horizon.csv", index=False)
+
+    for mode, e in errs.items():
+        for sec in (1.0, 10.0, 60.0):
+            k = int(round(sec / alpha))
+            if k <= T:
+                for blk in ("s", "e", "p", "p_dot"):
+                    if blk in e:
+                        v = e[blk][k]
+                        metrics[f"rollout_{mode}_{blk}_err_{int(sec)}s"] = float(v) if np.isfinite(v) else None
+        finite = np.flatnonzero(~np.isfinite(e["p"]))
+        metrics[f"rollout_{mode}_diverged_at"] = float(finite[0] * alpha) if len(finite) else None
+    last = horizon.iloc[-1]
+    for blk in ("s", "e", "p", "p_dot"):
+        for mode in hz:
+            if f"{mode}_{blk}" in last:
+                v = float(last[f"{mode}_{blk}"])
+                metrics[f"horizon_{blk}_err_{mode}"] = v if np.isfinite(v) else None
+    ends = np.arange(restart, T + 1, restart)
+    for mode, X in (("linearized", X_hz), ("nonlinear", X_hz_nl)):
+        metrics[f"horizon_diverged_fraction_{mode}"] = float(np.mean(~np.isfinite(X[ends, 0]))) if len(ends) else None
+    metrics["horizon_seconds"] = restart * alpha
+    spread = state_errors(dyn, np.broadcast_to(np.nanmean(X_true, 0), X_true.shape), X_true)
+    for blk in ("s", "e", "p_dot"):
+        if blk in spread:
+            metrics[f"flight_spread_{blk}"] = float(np.sqrt(np.mean(spread[blk] ** 2)))
+    metrics["flight_distance_m"] = float(np.linalg.norm(X_true[-1, dyn.slices["p"]] - X_true[0, dyn.slices["p"]]))
+    if lin_times:
+        metrics["jacobians_ms_mean"] = 1e3 * float(np.mean(lin_times))
+        metrics["jacobians_ms_median"] = 1e3 * float(np.median(lin_times))
+    return metrics

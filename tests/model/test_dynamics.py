@@ -1,0 +1,209 @@
+"""LearnedDynamics: Eq. 4, its Jacobians (Eq. 6) against finite differences and in block form,
+explicit steps; and the model_test / ablation_decomposition experiments run shrunk."""
+
+import numpy as np
+import pytest
+import torch
+
+from sdexp.model.dynamics import LearnedDynamics, state_sizes
+from sdexp.model.networks import ResidualMLP
+from sdexp.model.training import DECOMPOSED, design
+from tests.model.test_networks import synthetic_dataset
+
+ALPHA = 0.01
+
+
+def random_nets(n_s, n_e, dim, m, hidden=32, blocks=2, seed=0):
+    """Untrained d, g, h with non-trivial scaling buffers, wired as DECOMPOSED says."""
+    torch.manual_seed(seed)
+    sizes = {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim, "u": m}
+    nets = {}
+    for spec in DECOMPOSED:
+        if sizes[spec.current] == 0:
+            continue
+        n_in = sum(sizes[k] for k in spec.inputs)
+        off = sum(sizes[k] for k in spec.inputs[: spec.inputs.index(spec.current)])
+        net = ResidualMLP(n_in, sizes[spec.current], hidden, blocks, list(range(off, off + sizes[spec.current])))
+        with torch.no_grad():
+            net.in_mean.uniform_(-0.5, 0.5)
+            net.in_std.uniform_(0.5, 2.0)
+            net.out_mean.uniform_(-0.1, 0.1)
+            net.out_std.uniform_(0.05, 0.3)
+        nets[spec.name] = net.eval()
+    return nets
+
+
+@pytest.fixture(scope="module")
+def flower_dyn():
+    return LearnedDynamics(random_nets(8, 3, 3, 9), 8, 3, 3, 9, ALPHA)
+
+
+def point(dyn, seed=1):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=dyn.n), rng.uniform(-1, 1, dyn.m)
+
+
+def test_f_is_eq4(flower_dyn):
+    dyn = flower_dyn
+    x, u = point(dyn)
+    sl = dyn.slices
+    s, s_dot, e, e_dot, p, p_dot = (x[sl[k]] for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot"))
+    nets = {name: net.double() for name, net in random_nets(8, 3, 3, 9).items()}
+    call = lambda name, *parts: nets[name](torch.tensor(np.concatenate(parts))).detach().numpy()
+    d = call("d", s, s_dot, u)
+    g = call("g", s, s_dot, e, e_dot, u)
+    h = call("h", s, s_dot, e, e_dot, p_dot, u)
+    expect = np.concatenate([s_dot, (d - s_dot) / ALPHA, e_dot, (g - e_dot) / ALPHA, p_dot, (h - p_dot) / ALPHA])
+    np.testing.assert_allclose(dyn.f(x, u), expect, rtol=1e-10, atol=1e-10)
+    # f does not depend on p (no network reads it)
+    x2 = x.copy()
+    x2[sl["p"]] += 5.0
+    np.testing.assert_array_equal(dyn.f(x2, u), dyn.f(x, u))
+
+
+def test_f_hand_case():
+    """Output layers zeroed: every network returns current + out_mean, so the accelerations are
+    out_mean / alpha exactly, whatever the state."""
+    nets = random_nets(2, 1, 2, 3)
+    consts = {"d": [0.3, -0.2], "g": [0.05], "h": [0.0, -0.0981]}
+    for name, net in nets.items():
+        with torch.no_grad():
+            net.out.weight.zero_()
+            net.out.bias.zero_()
+            net.out_mean[:] = torch.tensor(consts[name])
+    dyn = LearnedDynamics(nets, 2, 1, 2, 3, ALPHA)
+    x = np.array([0.1, -0.1, 1.0, 2.0, 0.5, -0.5, 3.0, 4.0, 5.0, 6.0])   # s(2) s_dot(2) e e_dot p(2) p_dot(2)
+    f = dyn.f(x, np.zeros(3))
+    np.testing.assert_allclose(f, [1.0, 2.0, 30.0, -20.0, -0.5, 5.0, 5.0, 6.0, 0.0, -9.81], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(dyn.step(x, np.zeros(3)), x + ALPHA * f)
+
+
+def test_batched_f_and_step(flower_dyn):
+    dyn = flower_dyn
+    rng = np.random.default_rng(2)
+    X, U = rng.normal(size=(7, dyn.n)), rng.normal(size=(7, dyn.m))
+    F = dyn.f(X, U)
+    assert F.shape == (7, dyn.n)
+    for i in range(7):
+        np.testing.assert_allclose(F[i], dyn.f(X[i], U[i]), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(dyn.step(X, U), X + ALPHA * F)
+
+
+def test_jacobians_match_central_differences(flower_dyn):
+    dyn = flower_dyn
+    for seed in (1, 2, 3):
+        x, u = point(dyn, seed)
+        A, B = dyn.jacobians(x, u)
+        assert A.shape == (28, 28) and B.shape == (28, 9)
+        h = 1e-6
+        Af = np.stack([(dyn.f(x + h * ei, u) - dyn.f(x - h * ei, u)) / (2 * h) for ei in np.eye(dyn.n)], axis=1)
+        Bf = np.stack([(dyn.f(x, u + h * ei) - dyn.f(x, u - h * ei)) / (2 * h) for ei in np.eye(dyn.m)], axis=1)
+        scale = np.abs(A).max()
+        np.testing.assert_allclose(A, Af, atol=1e-6 * scale)
+        np.testing.assert_allclose(B, Bf, atol=1e-6 * np.abs(B).max())
+        f0, A2, B2 = dyn.linearize(x, u)
+        np.testing.assert_allclose(f0, dyn.f(x, u), rtol=1e-12, atol=1e-10)
+        np.testing.assert_array_equal(A2, A)
+
+
+def test_jacobians_have_the_eq6_block_structure(flower_dyn):
+    dyn = flower_dyn
+    A, B = dyn.jacobians(*point(dyn))
+    idx = {k: np.arange(dyn.n + dyn.m)[sl] for k, sl in dyn.slices.items()}
+    blk = lambda M, r, c: M[np.ix_(idx[r], idx[c])]
+    order = ("s", "s_dot", "e", "e_dot", "p", "p_dot")
+    # position rows: exactly [0 .. I .. 0] with I on the matching velocity; no u
+    for pos, vel in (("s", "s_dot"), ("e", "e_dot"), ("p", "p_dot")):
+        for c in order:
+            expect = np.eye(len(idx[pos])) if c == vel else np.zeros((len(idx[pos]), len(idx[c])))
+            np.testing.assert_array_equal(blk(A, pos, c), expect)
+        assert not B[idx[pos]].any()
+    # velocity rows: zero exactly where the input does not feed the network
+    zero = {"s_dot": ("e", "e_dot", "p", "p_dot"), "e_dot": ("p", "p_dot"), "p_dot": ("p",)}
+    feeds = {"s_dot": ("s", "s_dot"), "e_dot": ("s", "s_dot", "e", "e_dot"), "p_dot": ("s", "s_dot", "e", "e_dot", "p_dot")}
+    for row in zero:
+        for c in zero[row]:
+            assert not blk(A, row, c).any(), (row, c)
+        for c in feeds[row]:
+            assert np.abs(blk(A, row, c)).max() > 0, (row, c)
+        assert np.abs(B[idx[row]]).max() > 0
+    # the (1/alpha)(dd/ds_dot - I) diagonal: an untrained residual net keeps d ~ s_dot + small
+    assert np.all(np.diag(blk(A, "s_dot", "s_dot")) < 0.5 / ALPHA)
+
+
+def test_drone_without_peripheral_sensors():
+    nets = random_nets(0, 3, 3, 4)
+    assert "d" not in nets
+    dyn = LearnedDynamics(nets, 0, 3, 3, 4, ALPHA)
+    x, u = point(dyn)
+    A, B = dyn.jacobians(x, u)
+    assert A.shape == (12, 12) and B.shape == (12, 4)
+
+
+def test_dynamics_from_trained_nets_and_rollouts():
+    from sdexp.eval.model_test import acceleration_test, rollout, state_errors
+    from sdexp.model.training import train_models
+    from tests.model.test_networks import model_cfg
+
+    data = synthetic_dataset(n=3000, n_s=2, n_e=1, dim=2, m=3)
+    trained = train_models(data, model_cfg(epochs=4), 0, None, 0.2, progress=False)
+    dyn = LearnedDynamics.from_trained(trained, data, ALPHA)
+    assert (dyn.n_s, dyn.n_e, dyn.dim, dyn.m) == (2, 1, 2, 3) and state_sizes(data)["m"] == 3
+    # dynamics' velocity prediction is the trained net's, in float64
+    X, Y, _ = design(data, DECOMPOSED[0], np.arange(5))
+    a = data.arrays
+    x = np.concatenate([a[k][:5] for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot")], axis=1)
+    nxt = x[:, dyn.slices["s_dot"]] + ALPHA * dyn.f(x, a["u"][:5])[:, dyn.slices["s_dot"]]
+    with torch.no_grad():
+        np.testing.assert_allclose(nxt, trained.nets["d"](torch.from_numpy(X)).numpy(), rtol=1e-4, atol=1e-5)
+    # R^2 of the reconstructed acceleration is high on a learnable system
+    _, val = data.split(0.2, 0)
+    table, _ = acceleration_test(data, trained, val, ALPHA)
+    assert len(table) == 2 + 1 + 2 and table["r2"].min() > 0.5 and (table["r2_no_change"] < 0.1).all()
+    # relinearising every step follows the nonlinear model closely over a short horizon
+    U = np.random.default_rng(0).uniform(-1, 1, (20, 3))
+    X_nl, _ = rollout(dyn, x[0], U, 1, linear=False)
+    X_l1, times = rollout(dyn, x[0], U, 1, linear=True)
+    X_l5, _ = rollout(dyn, x[0], U, 5, linear=True)
+    assert len(times) == 20 and np.isfinite(X_l5).all()
+    err = state_errors(dyn, X_l1, X_nl)
+    assert max(v.max() for v in err.values()) < 1e-6
+    # restarts from the truth: zero error right at the start
+    X_hz, _ = rollout(dyn, x[0], U, 5, linear=True, X_true=X_nl, restart=10)
+    np.testing.assert_array_equal(X_hz[0], X_nl[0])
+
+
+# ------------------------------------------------------------------------------ experiments, shrunk
+
+SHRUNK = ["drone=rod", "data.samples=800", "data.episode_seconds=1.0", "data.hold_seconds=0.5",
+          "data.workers=1", "data.validation_fraction=0.25", "model.epochs=2", "model.hidden=16",
+          "model.blocks=1", "model.batch_size=64", "model.threads=1"]
+
+
+def _run_or_skip(tmp_path, cache_dir, *overrides):
+    from sdexp.eval.experiments import run_experiment
+    from tests.test_cli import make_cfg
+
+    cfg = make_cfg(*SHRUNK, f"cache_dir={cache_dir}", *overrides)
+    try:
+        return run_experiment(cfg, tmp_path)
+    except NotImplementedError:
+        pytest.skip("sdexp.model.dataset.load_dataset is not implemented yet")
+
+
+def test_model_test_runs_shrunk(tmp_path, cache_dir):
+    metrics = _run_or_skip(tmp_path, cache_dir, "experiment=model_test", "experiment.params.rollout_seconds=1.5",
+                           "experiment.params.horizon_seconds=0.2", "experiment.params.plot_seconds=0.5")
+    for f in ("training.csv", "training.png", "acceleration_r2.csv", "acceleration.png", "rollout.csv",
+              "rollout_horizon.csv", "rollout.png", "metrics.json"):
+        assert (tmp_path / f).exists(), f
+    assert metrics["flight_source"].startswith("simulated")   # episodes are 1 s, the flight 1.5 s
+    assert metrics["flight_seconds"] > 0.5 and metrics["jacobians_ms_mean"] > 0
+    assert np.isfinite(metrics["r2_mean"]) and "rollout_linearized_p_err_1s" in metrics
+
+
+def test_ablation_decomposition_runs_shrunk(tmp_path, cache_dir):
+    metrics = _run_or_skip(tmp_path, cache_dir, "experiment=ablation_decomposition")
+    assert (tmp_path / "ablation_decomposition.csv").exists() and (tmp_path / "ablation_decomposition.png").exists()
+    assert metrics["all_ratio_undecomposed_over_decomposed"] > 0 and metrics["shared_ratio_best"] > 0
+    assert metrics["undecomposed_channels"] == 2 + 1 + 8   # rod: p (2), e (1), 8 peripheral angles
