@@ -331,33 +331,35 @@ def _at(angles: np.ndarray, radius: float) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # the six drones (default proportions in metres, for the paper's sizes)
 
-def make_flower(size, thickness, num_rotors, num_sensors, params) -> Shape:
-    """Central disc and 8 petals; a rotor at the centre and near each petal tip."""
-    name = "flower"
-    p = _params(name, params, {"disc_radius": 0.6, "petal_root_width": 0.2, "petal_width": 0.8,
-                               "rotor_inset": 0.3})
-    _count(name, "9 rotors (centre + 8 petals)", 9, num_rotors, "num_rotors")
-    length, angles = 0.5 * float(size[0]), _angles(8)
-    body = _lobes(name, p["disc_radius"], angles, p["petal_root_width"], p["petal_width"], length)
+def _hub_with_lobes(name, size, thickness, num_rotors, num_sensors, p, keys, lobes) -> Shape:
+    """A flat hub with ``lobes`` tapered lobes along equal angles (the first along +X); a rotor
+    at the centre and near each lobe tip. ``keys``: the names of (hub radius, lobe root width,
+    lobe tip width) in ``p``."""
+    _count(name, f"{lobes + 1} rotors (centre + {lobes} lobes)", lobes + 1, num_rotors, "num_rotors")
+    length, angles = 0.5 * float(size[0]), _angles(lobes)
+    hub, root, tip = (p[k] for k in keys)
+    body = _lobes(name, hub, angles, root, tip, length)
     design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [],
                      _thickness(name, size, thickness))
     radii = np.r_[0.0, np.full(len(angles), length - p["rotor_inset"])]
     return _finish(_Plate(design, size), radii, np.r_[0.0, angles], num_sensors)
+
+
+def make_flower(size, thickness, num_rotors, num_sensors, params) -> Shape:
+    """Central disc and 8 petals; a rotor at the centre and near each petal tip."""
+    p = _params("flower", params, {"disc_radius": 0.6, "petal_root_width": 0.2, "petal_width": 0.8,
+                                   "rotor_inset": 0.3})
+    return _hub_with_lobes("flower", size, thickness, num_rotors, num_sensors, p,
+                           ("disc_radius", "petal_root_width", "petal_width"), 8)
 
 
 def make_star(size, thickness, num_rotors, num_sensors, params) -> Shape:
     """Starfish: central body and 4 tapered wings along +-X and +-Z; a rotor at the centre
     and near each wing tip."""
-    name = "star"
-    p = _params(name, params, {"body_radius": 0.8, "wing_root_width": 1.4, "wing_tip_width": 0.5,
-                               "rotor_inset": 0.3})
-    _count(name, "5 rotors (centre + 4 wings)", 5, num_rotors, "num_rotors")
-    length, angles = 0.5 * float(size[0]), _angles(4)
-    body = _lobes(name, p["body_radius"], angles, p["wing_root_width"], p["wing_tip_width"], length)
-    design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [],
-                     _thickness(name, size, thickness))
-    radii = np.r_[0.0, np.full(len(angles), length - p["rotor_inset"])]
-    return _finish(_Plate(design, size), radii, np.r_[0.0, angles], num_sensors)
+    p = _params("star", params, {"body_radius": 0.8, "wing_root_width": 1.4, "wing_tip_width": 0.5,
+                                 "rotor_inset": 0.3})
+    return _hub_with_lobes("star", size, thickness, num_rotors, num_sensors, p,
+                           ("body_radius", "wing_root_width", "wing_tip_width"), 4)
 
 
 def make_octopus(size, thickness, num_rotors, num_sensors, params) -> Shape:
