@@ -44,15 +44,15 @@ class Simulator:
         self.cfg = _plain(sim_cfg)
         self.noise = _plain(noise_cfg)
         self.rng = np.random.default_rng(seed)
-        fem = drone.fem
-        dt_stable = stable_substep(fem, sim_cfg.stability_safety)
-        dt_max = sim_cfg.substep if sim_cfg.substep is not None else dt_stable
-        self.n_sub = int(np.ceil(sim_cfg.control_dt / dt_max - 1e-9))
-        self.dt = sim_cfg.control_dt / self.n_sub
-        self.stable_limit = dt_stable / sim_cfg.stability_safety
-        self.threads = sim_cfg.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
+        fem, c, n = drone.fem, self.cfg, self.noise
+        dt_stable = stable_substep(fem, c.stability_safety)
+        dt_max = c.substep if c.substep is not None else dt_stable
+        self.n_sub = int(np.ceil(c.control_dt / dt_max - 1e-9))
+        self.dt = c.control_dt / self.n_sub
+        self.stable_limit = dt_stable / c.stability_safety
+        self.threads = c.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
-        self._delay_steps = int(round(noise_cfg.delay / sim_cfg.control_dt)) if noise_cfg.enabled else 0
+        self._delay_steps = int(round(n.delay / c.control_dt)) if n.enabled else 0
         self._rest_extent = np.ptp(fem.rest, axis=0).max()
         self.reset()
 
