@@ -49,7 +49,6 @@ class Simulator:
         dt_max = c.substep if c.substep is not None else dt_stable
         self.n_sub = int(np.ceil(c.control_dt / dt_max - 1e-9))
         self.dt = c.control_dt / self.n_sub
-        self.stable_limit = dt_stable / c.stability_safety
         self.threads = c.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
         self._delay_steps = int(round(n.delay / c.control_dt)) if n.enabled else 0
