@@ -36,8 +36,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import queue
 import shutil
 import time
 import warnings
@@ -51,6 +49,7 @@ from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write, key_of
 from sdexp.errors import UserError
+from sdexp.parallel import run_spawned
 
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
@@ -161,23 +160,7 @@ def _run_chunk(spec: dict, key: str, c: int, n: int, path: str, progress=None) -
     return info
 
 
-_QUEUE = None
-
-
-def _init_worker(q) -> None:
-    global _QUEUE
-    _QUEUE = q
-
-
-def _pool_task(args) -> dict:
-    return _run_chunk(*args, progress=_QUEUE.put)
-
-
 # ------------------------------------------------------------------------------ generation
-
-_WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-               "MKL_NUM_THREADS": "1"}
-
 
 def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     from tqdm import tqdm
@@ -257,49 +240,15 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
 
 
 def _run_pool(spec, key, folder, sizes, todo, workers, infos, bar) -> None:
-    """Chunks ``todo`` on ``workers`` spawned processes (one thread each: the environment they
-    start with says so); each writes its own chunk file, progress comes back through a queue.
-    A caller's script must guard its top level with ``if __name__ == "__main__":`` (spawn)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
-    saved = {k: os.environ.get(k) for k in _WORKER_ENV}
-    os.environ.update(_WORKER_ENV)
-    try:
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
-            # the children start on submit, with the environment above
-            futures = {pool.submit(_pool_task, (spec, key, c, sizes[c], str(_chunk_path(folder, c)))): c
-                       for c in todo}
-            _restore_env(saved)
-            try:
-                while futures:
-                    try:
-                        bar.update(q.get(timeout=0.2))
-                    except queue.Empty:
-                        pass
-                    for f in [f for f in futures if f.done()]:
-                        infos[futures.pop(f)] = f.result()  # re-raises a worker's error
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
-    finally:
-        _restore_env(saved)
-    while True:
-        try:
-            bar.update(q.get_nowait())
-        except queue.Empty:
-            break
+    """Chunks ``todo`` on ``workers`` processes (sdexp.parallel); each writes its own chunk file,
+    so the chunks finished before a failure or a kill are kept."""
+    tasks = [(spec, key, c, sizes[c], str(_chunk_path(folder, c))) for c in todo]
+    for c, info in zip(todo, run_spawned(_chunk_task, tasks, workers, bar.update)):
+        infos[c] = info
 
 
-def _restore_env(saved: dict) -> None:
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
+def _chunk_task(spec, key, c, n, path, report):
+    return _run_chunk(spec, key, c, n, path, progress=report)
 
 
 # ------------------------------------------------------------------------------ entry point

@@ -28,6 +28,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
+from sdexp.sim.rotations import euler_and_rates
 from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many
@@ -51,7 +52,7 @@ def raw_state(r: Readings, st: State, layout: SensorLayout) -> tuple[np.ndarray,
     """The undecomposed state: (p, frame Euler angles, every peripheral IMU's world-frame Euler
     angles (2D: its angle)) and its rates. Angles are stored as read (yaw and 2D angles in
     (-pi, pi], not unwrapped); rates come from the gyroscopes by the chain rule
-    (sdexp.sim.rotations.euler_from_matrix / euler_rates, compiled here: 2 us instead of 35)."""
+    (sdexp.sim.rotations.euler_and_rates, compiled: 2 us instead of 35)."""
     pi = layout.periph_idx
     if layout.dim == 2:
         ang, rate = r.rot[pi], r.omega[pi]
@@ -63,20 +64,12 @@ def raw_state(r: Readings, st: State, layout: SensorLayout) -> tuple[np.ndarray,
 
 @nb.njit(cache=True)
 def _euler_and_rates(rot, omega, idx):
-    """euler_from_matrix(rot[idx]) and euler_rates(e, omega[idx]) with E(e)^-1 in closed form:
-    omega = E(e) e_dot, E's columns (cy cz, sz, -sy cz), (0, 1, 0), (sy, 0, cy)."""
+    """euler_and_rates of the IMUs idx, stacked."""
     n = len(idx)
     ang = np.empty((n, 3))
     rate = np.empty((n, 3))
     for k in range(n):
-        R, w = rot[idx[k]], omega[idx[k]]
-        ez = np.arcsin(min(1.0, max(-1.0, R[1, 0])))
-        ex = np.arctan2(-R[1, 2], R[1, 1])
-        ey = np.arctan2(-R[2, 0], R[0, 0])
-        cy, sy, sz = np.cos(ey), np.sin(ey), np.sin(ez)
-        exd = (cy * w[0] - sy * w[2]) / np.cos(ez)
-        ang[k, 0], ang[k, 1], ang[k, 2] = ex, ey, ez
-        rate[k, 0], rate[k, 1], rate[k, 2] = exd, w[1] - sz * exd, sy * w[0] + cy * w[2]
+        ang[k], rate[k] = euler_and_rates(rot[idx[k]], omega[idx[k]])
     return ang, rate
 
 

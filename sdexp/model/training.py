@@ -40,8 +40,6 @@ read, is retrained and replaced (with a message), never used.
 from __future__ import annotations
 
 import hashlib
-import os
-import queue
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -54,6 +52,7 @@ import torch
 
 from sdexp.cache import atomic_write, key_of
 from sdexp.errors import UserError
+from sdexp.parallel import run_spawned
 from sdexp.model.networks import ResidualMLP
 
 FORMAT_VERSION = 5   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key
@@ -342,59 +341,26 @@ def _plain(model_cfg) -> SimpleNamespace:
     return SimpleNamespace(**{k: get(k) for k in (*MODEL_KEYS, "threads")})
 
 
-_QUEUE = None
-_ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-
-
-def _init_worker(q) -> None:
-    global _QUEUE
-    _QUEUE = q
-
-
-def _pool_job(job):
-    net, hist, sec = train_network(*job, progress=False, report=_QUEUE.put if _QUEUE is not None else None, threads=1)
+def _train_job(*args, report):
+    net, hist, sec = train_network(*args, progress=False, report=report, threads=1)
     return net.spec(), net.state_dict(), hist.to_dict(orient="list"), sec
 
 
 def _train_parallel(jobs, epochs: int, progress: bool):
-    """Every network in its own process with one torch thread, all at once.
+    """Every network in its own one-thread process, all at once (sdexp.parallel).
 
     Why not one process with ``model.threads`` torch threads, one network after the other: on
     this 2-core machine the networks' matrices (512 x 128) are too small for two threads to pay
     (measured 1.5 s/epoch on 2 threads vs 2.0 s on 1), and a second busy process makes
     OpenMP's barriers collapse (10-30 s/epoch measured); three one-thread processes share two
     cores at 2/3 speed each and degrade gracefully under load."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     from tqdm import tqdm
 
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
     names = ", ".join(job[-1] for job in jobs)
-    bar = tqdm(total=epochs * len(jobs), desc=f"train {names}", unit="epoch", disable=not progress, leave=False)
-    saved = {k: os.environ.get(k) for k in _ONE_THREAD}
-    os.environ.update(_ONE_THREAD)   # read by the children as they start
-    try:
-        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
-            futures = [pool.submit(_pool_job, job) for job in jobs]
-            for k, v in saved.items():
-                os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
-            saved = {}
-            while not all(f.done() for f in futures):
-                try:
-                    bar.update(q.get(timeout=0.2))
-                except queue.Empty:
-                    pass
-            out = []
-            for f in futures:
-                spec, state, hist, sec = f.result()   # re-raises a worker's error
-                out.append((ResidualMLP.from_saved(spec, state), pd.DataFrame(hist), sec))
-    finally:
-        for k, v in saved.items():
-            os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
-        bar.close()
-    return out
+    with tqdm(total=epochs * len(jobs), desc=f"train {names}", unit="epoch", disable=not progress,
+              leave=False) as bar:
+        results = run_spawned(_train_job, jobs, len(jobs), bar.update)
+    return [(ResidualMLP.from_saved(spec, state), pd.DataFrame(hist), sec) for spec, state, hist, sec in results]
 
 
 def history_table(trained: TrainedNets) -> pd.DataFrame:

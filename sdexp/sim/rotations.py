@@ -10,6 +10,7 @@ lock at a 90 deg yaw here, because "up" is +Y.) All functions are batched over l
 """
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 
@@ -108,3 +109,16 @@ def average_rotations(R: np.ndarray) -> np.ndarray:
     M = np.einsum("ki,kj->ij", q, q)
     _, vec = np.linalg.eigh(M)
     return matrix_from_quat(vec[:, -1])
+
+
+@nb.njit(cache=True)
+def euler_and_rates(R, omega_world):
+    """euler_from_matrix(R) and euler_rates(e, omega_world) for one rotation, compiled, with
+    E(e)^-1 in closed form (E's columns (cy cz, sz, -sy cz), (0, 1, 0), (sy, 0, cy))."""
+    ez = np.arcsin(min(1.0, max(-1.0, R[1, 0])))
+    ex = np.arctan2(-R[1, 2], R[1, 1])
+    ey = np.arctan2(-R[2, 0], R[0, 0])
+    cy, sy, sz = np.cos(ey), np.sin(ey), np.sin(ez)
+    ex_dot = (cy * omega_world[0] - sy * omega_world[2]) / np.cos(ez)
+    return (np.array([ex, ey, ez]),
+            np.array([ex_dot, omega_world[1] - sz * ex_dot, sy * omega_world[0] + cy * omega_world[2]]))

@@ -27,7 +27,7 @@ import numba as nb
 import numpy as np
 
 from sdexp.errors import UserError
-from sdexp.sim.rotations import average_rotations
+from sdexp.sim.rotations import average_rotations, euler_and_rates
 
 
 @dataclass
@@ -240,7 +240,7 @@ def decompose(r: Readings, layout: SensorLayout) -> State:
 @nb.njit(cache=True)
 def _bend_and_attitude(Rc, wc, rot_p, omega_p, r_hat):
     """s, s_dot of the peripheral IMUs against the body frame Rc (angular velocity wc), and the
-    Euler angles and rates of Rc (the convention of sdexp.sim.rotations, in closed form)."""
+    Euler angles and rates of Rc."""
     n = rot_p.shape[0]
     s = np.empty(n); s_dot = np.empty(n)
     Rt = np.ascontiguousarray(Rc.T)
@@ -254,12 +254,5 @@ def _bend_and_attitude(Rc, wc, rot_p, omega_p, r_hat):
         a_dot, c_dot = -(ybd @ r_hat[i]), ybd[1]
         s[i] = np.arctan2(a, c)
         s_dot[i] = (c * a_dot - a * c_dot) / (a * a + c * c)
-    ez = np.arcsin(min(1.0, max(-1.0, Rc[1, 0])))
-    ex = np.arctan2(-Rc[1, 2], Rc[1, 1])
-    ey = np.arctan2(-Rc[2, 0], Rc[0, 0])
-    cy, sy, cz, sz = np.cos(ey), np.sin(ey), np.cos(ez), np.sin(ez)
-    # omega = E(e) e_dot with E's columns (cy cz, sz, -sy cz), (0, 1, 0), (sy, 0, cy)
-    ex_dot = (cy * wc[0] - sy * wc[2]) / cz
-    ez_dot = sy * wc[0] + cy * wc[2]
-    ey_dot = wc[1] - ex_dot * sz
-    return s, s_dot, np.array([ex, ey, ez]), np.array([ex_dot, ey_dot, ez_dot])
+    e, e_dot = euler_and_rates(Rc, wc)
+    return s, s_dot, e, e_dot
