@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -51,7 +52,6 @@ class Drone:
 
 
 def drone_names() -> list[str]:
-    from pathlib import Path
     conf = Path(__file__).resolve().parents[2] / "conf" / "drone"
     return sorted(p.stem for p in conf.glob("*.yaml"))
 
