@@ -60,6 +60,7 @@ class SimConfig:
     max_speed: float = 100.0             # m/s; faster vertices count as a blow-up
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
     threads: int = 0                     # FEM kernel threads; 0 = auto (2 for big meshes)
+    effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.effects), each {name|_target_, params}
 
 
 @dataclass
@@ -78,6 +79,7 @@ class DataConfig:
     """Training data (supplement F): random thrust holds from the undeformed drone at rest."""
     samples: int = 150_000          # transitions (one per 10 ms control step)
     hold_seconds: float = 1.0       # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
+    thrust_range: List[float] = field(default_factory=lambda: [-1.0, 1.0])  # U[lo, hi] x Tmax (paper: [-1, 1])
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
     region: float = 30.0            # m from the start beyond which an episode restarts
     workers: int = 2                # simulation processes
@@ -100,6 +102,69 @@ class ModelConfig:
 
 
 @dataclass
+class NeuralControllerConfig:
+    """The neural-controller baseline (sdexp.control.neural), trained through d, g, h."""
+    hidden: int = 64
+    layers: int = 2
+    iterations: int = 300
+    batch: int = 64
+    horizon: int = 150              # control steps back-propagated through
+    lr: float = 1e-3
+    goal_radius: float = 6.0        # m; training goals are drawn in a ball this large
+    w_att: float = 1.0              # loss weights: attitude, bend, velocity, thrust
+    w_bend: float = 0.1
+    w_vel: float = 0.05
+    w_u: float = 0.01
+
+
+@dataclass
+class ControlConfig:
+    """Algorithm 1 and the LQR baselines (supplement G's table: Q gains 100-200 for s and p,
+    50-200 for e, R = 2, kp = 0.03, kd = 0.0001, n = 10)."""
+    q_s: float = 100.0
+    q_e: float = 100.0
+    q_p: float = 100.0
+    velocity_scale: float = 1.0     # Q on a rate = this x Q on its angle/position
+    r: float = 2.0
+    kp: float = 0.03
+    kd: float = 0.0001
+    n: int = 10                     # relinearise every n control steps (100/n Hz)
+    relinearize: bool = True        # false: linearise once at a given operating point
+    neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
+
+
+@dataclass
+class RecordConfig:
+    """Flights of the simulator through manoeuvres (sdexp.discrepancy.record)."""
+    flights: int = 6
+    seconds: float = 8.0               # per flight, plus 1 s of settling
+    manoeuvres: List[str] = field(default_factory=lambda: [
+        "hover", "steps", "random_holds", "ground_pass", "differential", "high_speed"])
+    height: float = 2.5                # m, start height of the lowest vertex above the ground
+    ground: float = 0.0                # m, where the ground-pass manoeuvre skims to
+    amplitude: float = 0.3             # excitation thrust as a fraction of the hover thrust
+
+
+@dataclass
+class DiscrepancyConfig:
+    """The sim-vs-measured workflow (sdexp.discrepancy.workflow)."""
+    measured: Optional[str] = None     # folder of measured logs (README: log format)
+    out: Optional[str] = None          # where the fitted effect override is written; null = the run folder
+    horizon: float = 0.2               # s predicted from each re-initialised measured state
+    stride: float = 0.5                # s between window starts
+    history: float = 0.3               # s of commands replayed through the actuation chain first
+    holdout: float = 0.34              # fraction of flights held out (at least one)
+    candidates: List[str] = field(default_factory=list)  # [] = the whole effect library
+    alpha: float = 0.05                # family-wise error rate of the candidate tests (Bonferroni)
+    min_gain: float = 0.05             # smallest held-out relative improvement that names an effect
+    screen: int = 3                    # candidates refined and tested on held-out flights
+    max_effects: int = 2               # effects added one after another while the residual remains
+    floor_flights: int = 4             # nominal simulated flights that calibrate the noise floor
+    unexplained_ratio: float = 1.5     # residual / noise floor above which a cell is unexplained
+    record: RecordConfig = field(default_factory=RecordConfig)
+
+
+@dataclass
 class ExperimentConfig:
     name: str = MISSING
     params: Dict[str, Any] = field(default_factory=dict)
@@ -114,6 +179,8 @@ class Config:
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    discrepancy: DiscrepancyConfig = field(default_factory=DiscrepancyConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
@@ -153,6 +220,8 @@ def validate(cfg: DictConfig | Config) -> None:
                f"min < max, {d.dim} coordinates each")
     a, m = cfg.data, cfg.model
     _check(a.samples > 0, "data.samples", a.samples, "> 0")
+    _check(len(a.thrust_range) == 2 and -1 <= a.thrust_range[0] < a.thrust_range[1] <= 1, "data.thrust_range",
+           list(a.thrust_range), "[lo, hi] with -1 <= lo < hi <= 1 (fractions of drone.max_thrust)")
     _check(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
     _check(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
     _check(a.region > 0, "data.region", a.region, "> 0 m")
@@ -164,6 +233,28 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",
            (m.lr, m.lr_decay, m.lr_step), "lr > 0, lr_decay in (0, 1], lr_step >= 1")
     _check(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
+    c = cfg.control
+    for key in ("q_s", "q_e", "q_p", "r"):
+        _check(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")
+    _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
+    _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
+    _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
+    nc = c.neural
+    _check(nc.iterations >= 1 and nc.batch >= 1 and nc.horizon >= 1, "control.neural.iterations/batch/horizon",
+           (nc.iterations, nc.batch, nc.horizon), ">= 1 each")
+    _check(nc.goal_radius > 0, "control.neural.goal_radius", nc.goal_radius, "> 0 m")
     for key in ("angle_std_deg", "position_std", "angle_rate_std_deg", "velocity_std",
                 "rotor_std", "delay"):
         _check(getattr(n, key) >= 0, f"noise.{key}", getattr(n, key), ">= 0")
+    q = cfg.discrepancy
+    _check(q.horizon > 0 and q.stride > 0 and q.history >= 0, "discrepancy.horizon/stride/history",
+           (q.horizon, q.stride, q.history), "horizon > 0 s, stride > 0 s, history >= 0 s")
+    _check(0 < q.holdout < 1, "discrepancy.holdout", q.holdout, "in (0, 1)")
+    _check(0 < q.alpha < 1, "discrepancy.alpha", q.alpha, "in (0, 1)")
+    _check(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",
+           (q.min_gain, q.screen, q.max_effects), "min_gain >= 0, screen >= 1, max_effects >= 1")
+    _check(q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights, ">= 1")
+    r = q.record
+    _check(r.flights >= 1 and r.seconds > 0, "discrepancy.record.flights/seconds", (r.flights, r.seconds),
+           "flights >= 1, seconds > 0")
+    _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")

@@ -21,6 +21,7 @@ RUNNERS = {
     "bench_sim": "sdexp.eval.bench_sim:run",
     "gallery": "sdexp.eval.gallery:run",
     "model_test": "sdexp.eval.model_test:run",
+    "sota": "sdexp.eval.sota:run",
     "validate_fem": "sdexp.eval.validate_fem:run",
 }
 

@@ -89,6 +89,14 @@ class Dataset:
 
 # ------------------------------------------------------------------------------ config -> key
 
+def _data_spec(data) -> dict:
+    spec = {k: data[k] for k in ("samples", "hold_seconds", "episode_seconds", "region")}
+    lo, hi = (float(v) for v in data.get("thrust_range", (-1.0, 1.0)))
+    if (lo, hi) != (-1.0, 1.0):   # the paper's range keeps the key it had before the option
+        spec["thrust_range"] = [lo, hi]
+    return spec
+
+
 def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
     """Everything that determines the data (plus ``cache_dir``, which does not)."""
     data = cfg.data
@@ -97,11 +105,13 @@ def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
         chunk_samples = max(CHUNK_SAMPLES, steps)
     sim = OmegaConf.to_container(cfg.sim, resolve=True)
     sim.pop("threads", None)  # generation always runs single-threaded (generate.py)
+    if not sim.get("effects"):
+        sim.pop("effects", None)  # the nominal simulator: same key as before effects existed
     return {
         "drone": OmegaConf.to_container(cfg.drone, resolve=True),
         "sim": sim,
         "noise": OmegaConf.to_container(cfg.noise, resolve=True),
-        "data": {k: data[k] for k in ("samples", "hold_seconds", "episode_seconds", "region")},
+        "data": _data_spec(data),
         "seed": int(cfg.seed),
         "chunk_samples": int(chunk_samples),
         "cache_dir": str(Path(cfg.cache_dir).expanduser()),

@@ -103,6 +103,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     ep_steps = max(1, int(round(data["episode_seconds"] / dt)))
     region2 = float(data["region"]) ** 2
     tmax, m = drone.max_thrust, drone.num_rotors
+    lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
     w = widths(layout.dim, layout.n_s, m)
     out = {k: np.empty((n, v)) for k, v in w.items()}
     episode = np.empty(n, dtype=np.int32)
@@ -124,7 +125,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
         start, k = i, 0
         while True:
             if k % hold == 0:
-                u = rng.uniform(-tmax, tmax, m)
+                u = rng.uniform(lo, hi, m)
             r = sim.step(u)
             if not sim.alive:
                 ends[sim.failure.reason] += 1

@@ -1,0 +1,39 @@
+"""The drone seen as a rigid body: mass, inertia and rotor geometry from vertex positions.
+
+This is the privileged knowledge of the paper's rigid baselines (supplement G): the rigid LQR
+reads it once from the rest shape, the geometry-updating LQR from the deformed mesh at every
+control step. The learned-dynamics controller never sees it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sdexp.sim.drone import RotorPatches, face_normals
+
+
+def rotation_2d(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def rigid_body(points: np.ndarray, masses: np.ndarray, rotors: RotorPatches, R: np.ndarray
+               ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(mass, centre of mass (world), inertia about it, rotor positions, unit thrust directions),
+    the last three in the body frame R (body-to-world, dim x dim). 2D inertia is the scalar
+    polar moment as a (1, 1) array."""
+    mass = float(masses.sum())
+    com = masses @ points / mass
+    local = (points - com) @ R                      # rows R^T (x - com)
+    if points.shape[1] == 3:
+        inertia = np.eye(3) * np.einsum("i,ij,ij->", masses, local, local) - np.einsum("i,ij,ik->jk", masses, local, local)
+    else:
+        inertia = np.array([[np.einsum("i,ij,ij->", masses, local, local)]])
+    faces = rotors.faces if points.shape[1] == 3 else rotors.faces[:, :2]
+    normals = face_normals(points, faces) @ R
+    pos, dirs = [], []
+    for r in range(rotors.count):
+        v = slice(rotors.vert_ptr[r], rotors.vert_ptr[r + 1])
+        pos.append(rotors.weights[v] @ local[rotors.verts[v]])
+        n = normals[rotors.face_ptr[r]:rotors.face_ptr[r + 1]].sum(axis=0)
+        dirs.append(n / np.linalg.norm(n))
+    return mass, com, inertia, np.array(pos), np.array(dirs)
