@@ -12,19 +12,35 @@ class LqrFailure(RuntimeError):
 
 def _care_gain(A, B, Q, R) -> np.ndarray:
     S = scipy.linalg.solve_continuous_are(A, B, Q, R)
-    return np.linalg.solve(R, B.T @ S)
+    K = np.linalg.solve(R, B.T @ S)
+    # With a marginal mode that roundoff alone makes "controllable" (rotor normals off +y by
+    # 1e-16), SciPy can return instead of failing: |S| ~ 1e15, gains up to 1e8, and a Riccati
+    # residual ~ 1e9 |Q|. Such an S solves nothing; treat it as the failure it is.
+    res = S @ A + A.T @ S - S @ B @ K + Q
+    if not np.all(np.isfinite(K)) or np.abs(res).max() > 1e-6 * max(np.abs(Q).max(), 1e-300):
+        raise np.linalg.LinAlgError("the Riccati solution does not solve the equation (ill-posed)")
+    return K
 
 
 def controllable_basis(A: np.ndarray, B: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
-    """Orthonormal basis (columns) of the controllable subspace span[B, AB, ..., A^(n-1) B]."""
+    """Orthonormal basis (columns) of the controllable subspace span[B, AB, ..., A^(n-1) B], by
+    the orthogonal staircase: each block A v of the newest directions v is orthogonalised against
+    the basis so far and kept where it exceeds rtol |A| (rtol |B| for B itself). The explicit
+    matrix [B, AB, ...] would let the powers of A swamp B (a generic 28-state model read as rank
+    13)."""
     n = len(A)
-    blocks, M = [B], B
-    for _ in range(n - 1):
-        M = A @ M
-        blocks.append(M)
-    C = np.hstack(blocks)
-    U, sv, _ = np.linalg.svd(C / max(np.abs(C).max(), 1e-300), full_matrices=False)
-    return U[:, sv > rtol * sv[0]] if len(sv) and sv[0] > 0 else np.zeros((n, 0))
+    V = np.zeros((n, 0))
+    W, scale = B, np.linalg.norm(B, 2)
+    while V.shape[1] < n:
+        for _ in range(2):                      # twice is enough (Kahan)
+            W = W - V @ (V.T @ W)
+        U, sv, _ = np.linalg.svd(W, full_matrices=False)
+        new = U[:, sv > rtol * scale][:, : n - V.shape[1]]
+        if new.shape[1] == 0 or scale == 0:
+            break
+        V = np.hstack([V, new])
+        W, scale = A @ new, np.linalg.norm(A, 2)
+    return V
 
 
 def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -33,7 +49,8 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.n
     A system with uncontrollable marginal modes (a rigid multicopter without rotor reaction
     torque cannot yaw) has no stabilising Riccati solution; then the gain is designed on the
     controllable subspace T (A_c = T^T A T, B_c = T^T B, Q_c = T^T Q T) and K = K_c T^T, which
-    leaves the uncontrollable modes alone -- nothing could move them."""
+    leaves the uncontrollable modes alone -- nothing could move them. An uncontrollable mode
+    that grows (the system is not stabilisable) raises LqrFailure."""
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
         raise LqrFailure("A or B is not finite")
     try:
@@ -42,6 +59,11 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.n
         T = controllable_basis(A, B)
         if T.shape[1] in (0, len(A)):
             raise LqrFailure(str(first)) from first
+        # the modes no input reaches: A on the orthogonal complement of the (A-invariant) span T
+        N = scipy.linalg.null_space(T.T)
+        growth = np.linalg.eigvals(N.T @ A @ N).real.max()
+        if growth > 1e-6 * max(1.0, np.abs(A).max()):
+            raise LqrFailure(f"{first}; an uncontrollable mode grows at rate {growth:.3g}") from first
         try:
             return _care_gain(T.T @ A @ T, T.T @ B, T.T @ Q @ T, R) @ T.T
         except (np.linalg.LinAlgError, ValueError) as err:

@@ -109,7 +109,7 @@ def train_policy(dyn: LearnedDynamics, data_x: np.ndarray, max_thrust: float, cf
             loss.backward()
             nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
             opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         if progress:
             it.set_postfix(loss=f"{losses[-1]:.3f}")
     return policy.eval(), losses

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from sdexp.control.lqr import LqrFailure
 from sdexp.control.tasks import Task, wrap_angle
@@ -38,6 +39,13 @@ class Flight:
 
 
 def fly(sim: Simulator, controller, task: Task, on_step=None) -> Flight:
+    # the controllers' matrices are tiny (28 x 28 at most): BLAS threads only add hand-offs and
+    # stall when the simulator's threads hold the cores
+    with threadpool_limits(1, user_api="blas"):
+        return _fly(sim, controller, task, on_step)
+
+
+def _fly(sim: Simulator, controller, task: Task, on_step=None) -> Flight:
     sim.reset()
     # release the drone where its *measured* position (the mean of its IMUs) is task.start
     readings = sim.reset(position=task.start - sim.state(noisy=False).p)

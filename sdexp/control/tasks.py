@@ -6,7 +6,7 @@ One :class:`Task` covers the paper's four kinds and their combinations:
   target reaching     target elsewhere;
   velocity tracking   ``velocity`` != 0: the goal position moves, p_goal(t) = target + v t;
   active deformation  ``bend``: a schedule of target bend angles s(t), linear between keyframes.
-Attitude goal is level (e = 0) throughout.
+The attitude goal is level (e = 0) unless ``attitude`` gives one.
 """
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ from sdexp.sim.sensors import State
 
 
 def wrap_angle(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+    """a mapped into (-pi, pi] (so an error of exactly +-pi keeps one sign)."""
+    return np.pi - (np.pi - np.asarray(a)) % (2 * np.pi)
 
 
 @dataclass
@@ -31,6 +32,7 @@ class Task:
     velocity: np.ndarray | None = None       # (dim,) goal velocity
     bend_times: Sequence[float] = field(default_factory=list)       # keyframe times (s)
     bend_targets: Sequence[Sequence[float]] = field(default_factory=list)  # (k, n_s) in rad
+    attitude: Sequence[float] | None = None  # goal Euler angles (rad); None = level
 
     def __post_init__(self):
         self.start = np.asarray(self.start, dtype=float)
@@ -53,5 +55,6 @@ class Task:
 
     def goal(self, t: float) -> State:
         ne = 3 if self.dim == 3 else 1
-        return State(s=self.bend(t), e=np.zeros(ne), p=self.target + self.velocity * t,
+        e = np.zeros(ne) if self.attitude is None else np.asarray(self.attitude, dtype=float)
+        return State(s=self.bend(t), e=e, p=self.target + self.velocity * t,
                      s_dot=np.zeros(self.n_s), e_dot=np.zeros(ne), p_dot=self.velocity.copy())

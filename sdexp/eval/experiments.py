@@ -18,9 +18,14 @@ from sdexp.errors import UserError
 # name -> "module:function"; each function is run(cfg, out_dir) -> dict of metrics
 RUNNERS = {
     "ablation_decomposition": "sdexp.eval.ablation_decomposition:run",
+    "ablation_fixed_point": "sdexp.eval.ablation_fixed_point:run",
+    "bench_control": "sdexp.eval.bench_control:run",
     "bench_sim": "sdexp.eval.bench_sim:run",
     "gallery": "sdexp.eval.gallery:run",
+    "hover_deform": "sdexp.eval.hover_deform:run",
     "model_test": "sdexp.eval.model_test:run",
+    "nsweep": "sdexp.eval.nsweep:run",
+    "obstacle": "sdexp.eval.obstacle:run",
     "sota": "sdexp.eval.sota:run",
     "validate_fem": "sdexp.eval.validate_fem:run",
 }

@@ -35,13 +35,21 @@ class Setup:
     def task(self, start, target, seconds: float, **kw) -> Task:
         return Task(start=start, target=target, seconds=seconds, n_s=self.dyn.n_s, **kw)
 
-    def fly(self, sim: Simulator, controller, task: Task, label: str | None = None) -> tuple[Flight, dict]:
+    def fly(self, sim: Simulator, controller, task: Task, label: str | None = None, watch=None
+            ) -> tuple[Flight, dict]:
+        """Fly with a progress bar; ``watch(sim)`` is called after every step (e.g. contacts)."""
         bar = None
         if self.progress:
             from tqdm import tqdm
             bar = tqdm(total=int(round(task.seconds / sim.cfg.control_dt)), desc=f"fly {label or controller.name}",
                        unit="step", leave=False)
-        flight = fly(sim, controller, task, on_step=bar.update if bar is not None else None)
+
+        def on_step():
+            if bar is not None:
+                bar.update()
+            if watch is not None:
+                watch(sim)
+        flight = fly(sim, controller, task, on_step=on_step)
         if bar is not None:
             bar.close()
         return flight, metrics(flight, self.dyn.slices["p"], self.dyn.slices["e"], task.seconds)
