@@ -9,6 +9,7 @@ from sdexp.model.dynamics import LearnedDynamics, state_sizes
 from sdexp.model.networks import ResidualMLP
 from sdexp.model.training import DECOMPOSED, design
 from tests.model.test_networks import synthetic_dataset
+from sdexp.eval.references import SHRUNK  # one shrunk model for every experiment test
 
 ALPHA = 0.01
 
@@ -174,11 +175,6 @@ def test_dynamics_from_trained_nets_and_rollouts():
 
 
 # ------------------------------------------------------------------------------ experiments, shrunk
-
-SHRUNK = ["drone=rod", "data.samples=800", "data.episode_seconds=1.0", "data.hold_seconds=0.5",
-          "data.workers=1", "data.validation_fraction=0.25", "model.epochs=2", "model.hidden=16",
-          "model.blocks=1", "model.batch_size=64", "model.threads=1"]
-
 
 def _run_or_skip(tmp_path, cache_dir, *overrides):
     from sdexp.eval.experiments import run_experiment
