@@ -91,7 +91,7 @@ def test_cli_errors_are_short_and_list_choices(tmp_path):
     res = _cli("experiment=bench_sim", "drone.poisson_ratio=0.7", f"hydra.run.dir={tmp_path}/o", cwd=tmp_path)
     assert res.returncode == 2
     assert "drone.poisson_ratio" in res.stderr and "Traceback" not in res.stderr
-    res = _cli("drone=bunny", "drone.num_rotors=5", "experiment.params.drones=[bunny]",
+    res = _cli("experiment=bench_sim", "drone=bunny", "drone.num_rotors=5", "experiment.params.drones=[bunny]",
                f"hydra.run.dir={tmp_path}/o2", cwd=tmp_path)
     assert res.returncode == 2 and "num_rotors" in res.stderr and "Traceback" not in res.stderr
 

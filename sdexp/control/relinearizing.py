@@ -58,6 +58,7 @@ class RelinearizingLQR:
 
     def reset(self, task: Task) -> None:
         self.task, self.k = task, 0
+        self.timings = []
         self.u = self.u0.copy()
         self.u_oper = self.u.copy()
         if not self.relinearize:

@@ -1,0 +1,246 @@
+"""Algorithm 1 (RelinearizingLQR) on dynamics whose truth is known: a planar two-rotor
+multicopter under gravity (optionally with one damped bending mode), exactly affine or with the
+full rotation nonlinearity, standing in for the learned d, g, h. Hover is never the operating
+point it is handed: the algorithm starts from u = 0, where f(x, u) != 0."""
+import numpy as np
+import pytest
+import scipy.linalg
+
+from sdexp.control.lqr import LqrFailure, state_weights
+from sdexp.control.relinearizing import RelinearizingLQR
+from sdexp.control.tasks import Task
+from sdexp.sim.sensors import State
+
+G, MASS, J, ARM = 9.81, 1.0, 0.05, 0.25
+DT = 0.01
+TMAX = 10.0
+
+
+class PlanarCopter:
+    """x = (s, s_dot, theta, theta_dot, px, py, vx, vy), u = (left, right) thrusts.
+
+    nonlinear:  p_ddot = (u0 + u1) / m (-sin theta, cos theta) - g y,  theta_ddot = ARM (u1 - u0) / J
+    affine:     p_ddot = (-g theta, (u0 + u1) / m - g): the hover linearisation, kept as the
+                model everywhere (A, B constant, f(x, u) = A x + B u + c with c = -g y)
+    bending:    s_ddot = -w^2 s - 2 z w s_dot + b (u0 - u1)
+    The LearnedDynamics interface: n, m, n_s, n_e, dim, alpha, slices, f, linearize."""
+
+    def __init__(self, nonlinear=True, n_s=0):
+        self.nonlinear, self.n_s, self.n_e, self.dim, self.m, self.alpha = nonlinear, n_s, 1, 2, 2, DT
+        sizes = [("s", n_s), ("s_dot", n_s), ("e", 1), ("e_dot", 1), ("p", 2), ("p_dot", 2)]
+        self.slices, o = {}, 0
+        for k, w in sizes:
+            self.slices[k] = slice(o, o + w)
+            o += w
+        self.n = o
+        self.slices["u"] = slice(o, o + 2)
+        self.calls = []
+
+    def f(self, x, u):
+        x, u = np.asarray(x, float), np.asarray(u, float)
+        sl = self.slices
+        th, w = x[sl["e"]][0], x[sl["e_dot"]][0]
+        T = u[0] + u[1]
+        if self.nonlinear:
+            acc = T / MASS * np.array([-np.sin(th), np.cos(th)]) - [0.0, G]
+        else:
+            acc = np.array([-G * th, T / MASS - G])
+        out = np.zeros(self.n)
+        out[sl["e"]] = w
+        out[sl["e_dot"]] = ARM * (u[1] - u[0]) / J
+        out[sl["p"]] = x[sl["p_dot"]]
+        out[sl["p_dot"]] = acc
+        if self.n_s:
+            s, sd = x[sl["s"]], x[sl["s_dot"]]
+            out[sl["s"]] = sd
+            out[sl["s_dot"]] = -16.0 * s - 4.0 * sd + 0.5 * (u[0] - u[1])
+        return out
+
+    def linearize(self, x, u):
+        self.calls.append((np.array(x, float), np.array(u, float)))
+        h = 1e-6
+        A = np.stack([(self.f(x + h * e, u) - self.f(x - h * e, u)) / (2 * h) for e in np.eye(self.n)], 1)
+        B = np.stack([(self.f(x, u + h * e) - self.f(x, u - h * e)) / (2 * h) for e in np.eye(2)], 1)
+        return self.f(x, u), A, B
+
+
+def state_of(dyn, x):
+    sl = dyn.slices
+    return State(*(x[sl[k]].copy() for k in ("s", "e", "p", "s_dot", "e_dot", "p_dot")))
+
+
+def weights(dyn):
+    return state_weights({"n_s": dyn.n_s, "n_e": 1, "dim": 2}, 100.0, 100.0, 100.0, 1.0)
+
+
+def care_gain(A, B, q, r):
+    S = scipy.linalg.solve_continuous_are(A, B, np.diag(q), r * np.eye(B.shape[1]))
+    return B.T @ S / r
+
+
+def fly(dyn, ctl, x0, seconds, truth=None, state_map=None):
+    """Closed loop with explicit Euler steps of DT through ``truth`` (default: the model)."""
+    truth = truth or dyn
+    x, X, U = np.array(x0, float), [], []
+    for k in range(int(round(seconds / DT))):
+        st = state_of(dyn, x if state_map is None else state_map(x))
+        u = ctl.act(k * DT, st)
+        U.append(u.copy())
+        X.append(x.copy())
+        x = x + DT * truth.f(x, u)
+    return np.array(X + [x]), np.array(U)
+
+
+@pytest.mark.parametrize("nonlinear", [False, True], ids=["affine", "nonlinear"])
+def test_flies_to_the_goal_and_holds_it_from_zero_thrust(nonlinear):
+    """The paper's gains (Q 100, R 2, kp 0.03, kd 1e-4). u starts at 0 -- gravity is not
+    compensated by any operating point given in advance; u_oper accumulates it."""
+    dyn = PlanarCopter(nonlinear)
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=0.03, kd=1e-4, n=5, max_thrust=TMAX)
+    target = np.array([1.0, 0.5])
+    ctl.reset(Task(start=np.zeros(2), target=target, seconds=15.0, n_s=0))
+    x0 = np.zeros(dyn.n)
+    x0[dyn.slices["e"]] = np.deg2rad(5.0)
+    X, U = fly(dyn, ctl, x0, 15.0)
+    sl = dyn.slices
+    np.testing.assert_array_equal(ctl.u0, 0.0)
+    assert abs(U[0].sum()) < 2.0                            # far from the 9.81 N hover thrust ...
+    err = np.linalg.norm(X[:, sl["p"]] - target, axis=1)
+    assert err[-1] < 5e-3 and err[-1] < 0.01 * err[0]       # ... and still it gets there
+    assert np.abs(X[-200:, sl["p"]] - target).max() < 1e-2  # and stays
+    np.testing.assert_allclose(U[-1], [MASS * G / 2] * 2, atol=0.02)
+    assert abs(X[-1, sl["e"]][0]) < 1e-3 and np.abs(X[-1, sl["p_dot"]]).max() < 1e-2
+
+
+def test_bending_mode_is_held_too():
+    dyn = PlanarCopter(True, n_s=1)
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=0.03, kd=1e-4, n=5, max_thrust=TMAX)
+    ctl.reset(Task(start=np.zeros(2), target=[-0.5, 0.3], seconds=12.0, n_s=1))
+    x0 = np.zeros(dyn.n)
+    x0[dyn.slices["s"]] = 0.2
+    X, U = fly(dyn, ctl, x0, 12.0)
+    assert np.linalg.norm(X[-1, dyn.slices["p"]] - [-0.5, 0.3]) < 0.02
+    assert abs(X[-1, dyn.slices["s"]][0]) < 1e-3
+
+
+def test_waypoint_and_command_follow_algorithm_1():
+    """Right after a relinearisation at (x, u): x_wp = x + kp (x_goal - x) + kd f(x, u), and
+    u = u_oper - K (x - x_wp) with K the LQR gain of (A, B) there; for the next n - 1 steps the
+    same K, x_wp and u_oper act on the drift."""
+    dyn = PlanarCopter(False)
+    q, r, kp, kd, n = weights(dyn), 2.0, 0.3, 0.05, 4
+    u0 = np.array([1.0, 2.0])
+    ctl = RelinearizingLQR(dyn, q, r=r, kp=kp, kd=kd, n=n, max_thrust=TMAX, u0=u0)
+    task = Task(start=np.zeros(2), target=[0.4, -0.2], seconds=1.0, n_s=0)
+    ctl.reset(task)
+    x = np.array([0.05, -0.1, 0.1, 0.2, 0.3, -0.1])
+    goal = task.goal(0.0).x
+    _, A, B = dyn.linearize(x, u0)
+    K = care_gain(A, B, q, r)
+    u = ctl.act(0.0, state_of(dyn, x))
+    x_wp = x + kp * (goal - x) + kd * dyn.f(x, u0)
+    np.testing.assert_allclose(ctl.x_wp, x_wp, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(u, u0 + K @ (kp * (goal - x) + kd * dyn.f(x, u0)), rtol=1e-9)
+    # the next n - 1 steps: fixed K, x_wp, u_oper = u0
+    for k in range(1, n):
+        x = x + DT * dyn.f(x, u)
+        u = ctl.act(k * DT, state_of(dyn, x))
+        np.testing.assert_allclose(u, u0 - K @ (x - x_wp), rtol=1e-9)
+    # step n: relinearised at the current x and the last command, which becomes u_oper
+    u_prev = u.copy()
+    x = x + DT * dyn.f(x, u)
+    u = ctl.act(n * DT, state_of(dyn, x))
+    np.testing.assert_allclose(ctl.u_oper, u_prev)
+    np.testing.assert_allclose(ctl.x_wp, x + kp * (goal - x) + kd * dyn.f(x, u_prev), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(u, u_prev + K @ (kp * (goal - x) + kd * dyn.f(x, u_prev)), rtol=1e-9)
+
+
+@pytest.mark.parametrize("n", [1, 3, 10])
+def test_relinearises_every_n_steps_at_the_current_state_and_command(n):
+    dyn = PlanarCopter(True)
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=0.03, kd=1e-4, n=n, max_thrust=TMAX)
+    ctl.reset(Task(start=np.zeros(2), target=[0.2, 0.1], seconds=1.0, n_s=0))
+    X, U = fly(dyn, ctl, np.zeros(dyn.n), 0.25)
+    steps = len(U)
+    assert len(dyn.calls) == -(-steps // n) == len(ctl.timings)
+    for j, (xc, uc) in enumerate(dyn.calls):
+        k = j * n
+        np.testing.assert_array_equal(xc, X[k])
+        np.testing.assert_array_equal(uc, U[k - 1] if k else np.zeros(2))
+    assert all(t >= 0 for t in ctl.timings)
+
+
+def test_fixed_operating_point_ablation_never_relinearises():
+    dyn = PlanarCopter(True)
+    x_op, u_op = np.zeros(dyn.n), np.full(2, MASS * G / 2)
+    q, r, kp, kd, n = weights(dyn), 2.0, 0.03, 1e-4, 5
+    ctl = RelinearizingLQR(dyn, q, r=r, kp=kp, kd=kd, n=n, max_thrust=TMAX, relinearize=False, x_op=x_op, u_op=u_op)
+    task = Task(start=np.zeros(2), target=[0.5, 0.5], seconds=1.0, n_s=0)
+    ctl.reset(task)
+    assert len(dyn.calls) == 1
+    np.testing.assert_array_equal(dyn.calls[0][0], x_op)
+    np.testing.assert_array_equal(dyn.calls[0][1], u_op)
+    _, A, B = PlanarCopter(True).linearize(x_op, u_op)
+    K = care_gain(A, B, q, r)
+    x = np.zeros(dyn.n)
+    x[dyn.slices["e"]] = 0.3                   # far from the operating point's attitude
+    u_last = np.zeros(2)
+    goal = task.goal(0.0).x
+    for k in range(12):
+        u = ctl.act(k * DT, state_of(dyn, x))
+        if k % n == 0:
+            x_wp = x + kp * (goal - x) + kd * dyn.f(x, u_last)
+            np.testing.assert_allclose(ctl.x_wp, x_wp, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(u, np.clip(u_op - K @ (x - x_wp), -TMAX, TMAX), rtol=1e-9)
+        u_last = u
+        x = x + DT * dyn.f(x, u)
+    assert len(dyn.calls) == 1
+    np.testing.assert_array_equal(ctl.u_oper, u_op)
+    with pytest.raises(ValueError):
+        RelinearizingLQR(dyn, q, r=r, kp=kp, kd=kd, n=n, max_thrust=TMAX, relinearize=False).reset(task)
+
+
+def test_commands_are_clipped_and_the_clip_is_what_u_oper_keeps():
+    dyn = PlanarCopter(True)
+    tmax = 3.0
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=0.5, kd=0.0, n=3, max_thrust=tmax)
+    ctl.reset(Task(start=np.zeros(2), target=[0.0, 100.0], seconds=1.0, n_s=0))
+    X, U = fly(dyn, ctl, np.zeros(dyn.n), 0.3)
+    assert np.abs(U).max() <= tmax
+    assert np.any(np.abs(U) == tmax)                       # it did saturate
+    for j, (_, uc) in enumerate(dyn.calls[1:], start=1):
+        np.testing.assert_array_equal(uc, U[3 * j - 1])    # relinearised at the clipped command
+        assert np.abs(uc).max() <= tmax
+    with pytest.raises(ValueError):
+        RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=0.5, kd=0.0, n=0, max_thrust=tmax)
+
+
+def test_attitude_differences_are_wrapped():
+    """Reading theta + 2 pi instead of theta (the same attitude) changes nothing."""
+    dyn, dyn2 = PlanarCopter(True), PlanarCopter(True)
+    kw = dict(r=2.0, kp=0.1, kd=1e-3, n=4, max_thrust=TMAX)
+    task = Task(start=np.zeros(2), target=[0.3, 0.0], seconds=1.0, n_s=0)
+    a, b = RelinearizingLQR(dyn, weights(dyn), **kw), RelinearizingLQR(dyn2, weights(dyn2), **kw)
+    a.reset(task)
+    b.reset(task)
+    x0 = np.zeros(dyn.n)
+    x0[dyn.slices["e"]] = 0.2
+    turn = np.zeros(dyn.n)
+    turn[dyn.slices["e"]] = 2 * np.pi
+    Xa, Ua = fly(dyn, a, x0, 0.2)
+    Xb, Ub = fly(dyn2, b, x0, 0.2, state_map=lambda x: x + turn)
+    np.testing.assert_allclose(Ub, Ua, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(Xb, Xa, rtol=1e-9, atol=1e-12)
+
+
+def test_a_broken_linearisation_is_an_lqr_failure():
+    class Broken(PlanarCopter):
+        def linearize(self, x, u):
+            f0, A, B = super().linearize(x, u)
+            return f0, A * np.nan, B
+
+    dyn = Broken(True)
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=0.03, kd=1e-4, n=5, max_thrust=TMAX)
+    ctl.reset(Task(start=np.zeros(2), target=[0.0, 0.0], seconds=1.0, n_s=0))
+    with pytest.raises(LqrFailure):
+        ctl.act(0.0, state_of(dyn, np.zeros(dyn.n)))
