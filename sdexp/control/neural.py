@@ -68,6 +68,15 @@ def policy_key(nets_key: str, cfg, seed: int) -> str:
 def train_policy(dyn: LearnedDynamics, data_x: np.ndarray, max_thrust: float, cfg, seed: int,
                  progress: bool = True) -> tuple[Policy, list[float]]:
     """Returns the policy and its loss per iteration. ``data_x``: (N, n) states from the data."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)   # 64 x 128 matrices: a second thread only waits (and stalls on a busy core)
+    try:
+        return _train_policy(dyn, data_x, max_thrust, cfg, seed, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     d32 = _float32_dynamics(dyn)

@@ -218,3 +218,13 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
     h = 1e-6
     fd = (raw_at(0.3 + h)[0] - raw_at(0.3 - h)[0]) / (2 * h)
     np.testing.assert_allclose(raw_dot, fd, rtol=1e-5, atol=1e-5)
+
+
+def test_thrust_range_narrows_the_holds_and_keys_the_cache(reference, tmp_path):
+    cfg, _ = reference
+    narrow = make_cfg(str(tmp_path), "data.samples=400", "data.thrust_range=[0.0,0.2]")
+    u = load_dataset(narrow, CHUNK).arrays["u"]
+    assert u.min() >= 0.0 and u.max() <= 2.0 + 1e-6 and u.max() > 1.0
+    paper = make_cfg(str(tmp_path), "data.thrust_range=[-1.0,1.0]")
+    assert dataset_key(dataset_spec(paper, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))   # the default
+    assert dataset_key(dataset_spec(narrow, CHUNK)) != dataset_key(dataset_spec(make_cfg(str(tmp_path), "data.samples=400"), CHUNK))
