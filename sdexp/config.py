@@ -130,14 +130,15 @@ class ControlConfig:
     kd: float = 0.0001
     n: int = 10                     # relinearise every n control steps (100/n Hz)
     relinearize: bool = True        # false: linearise once at a given operating point
+    riccati: str = "continuous"     # continuous (the paper) | discrete (gain of the 100 Hz sampled loop)
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 
 
 @dataclass
 class RecordConfig:
     """Flights of the simulator through manoeuvres (sdexp.discrepancy.record)."""
-    flights: int = 6
-    seconds: float = 8.0               # per flight, plus 1 s of settling
+    flights: int = 8
+    seconds: float = 6.0               # per flight, plus 1 s of settling
     manoeuvres: List[str] = field(default_factory=lambda: [
         "hover", "steps", "random_holds", "ground_pass", "differential", "high_speed"])
     height: float = 2.5                # m, start height of the lowest vertex above the ground
@@ -153,13 +154,14 @@ class DiscrepancyConfig:
     horizon: float = 0.2               # s predicted from each re-initialised measured state
     stride: float = 0.5                # s between window starts
     history: float = 0.3               # s of commands replayed through the actuation chain first
-    holdout: float = 0.34              # fraction of flights held out (at least one)
+    holdout: float = 0.5               # fraction of flights held out (at least one): tests need many windows
+    fit_windows: int = 30              # training windows the fits use (evenly thinned): the cost driver
     candidates: List[str] = field(default_factory=list)  # [] = the whole effect library
     alpha: float = 0.05                # family-wise error rate of the candidate tests (Bonferroni)
     min_gain: float = 0.05             # smallest held-out relative improvement that names an effect
     screen: int = 3                    # candidates refined and tested on held-out flights
     max_effects: int = 2               # effects added one after another while the residual remains
-    floor_flights: int = 4             # nominal simulated flights that calibrate the noise floor
+    floor_flights: int = 8             # nominal simulated flights that calibrate the noise floor
     unexplained_ratio: float = 1.5     # residual / noise floor above which a cell is unexplained
     record: RecordConfig = field(default_factory=RecordConfig)
 
@@ -239,6 +241,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
     _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
     _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
+    _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
     nc = c.neural
     _check(nc.iterations >= 1 and nc.batch >= 1 and nc.horizon >= 1, "control.neural.iterations/batch/horizon",
            (nc.iterations, nc.batch, nc.horizon), ">= 1 each")

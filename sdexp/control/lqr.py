@@ -1,5 +1,15 @@
 """The LQR core every controller shares: the infinite-horizon continuous-time gain from SciPy's
-algebraic Riccati solver (supplement G), and the diagonal cost of the supplement's table."""
+algebraic Riccati solver (supplement G), its sampled-data counterpart, and the diagonal cost of
+the supplement's table.
+
+Why a discrete option. The continuous gain assumes the command changes continuously; the loop
+runs at 100 Hz with the command held for 10 ms. On the learned flower model the continuous
+design places closed-loop poles near -200 /s (the bend angles s are cheap to move: B's s rows
+reach 14 rad/s^2 per N), where the Euler-sampled loop x_{k+1} = (I + dt (A - B K)) x_k is
+already unstable (|1 - 200 x 0.01| > 1). ``lqr_gain(..., dt=0.01)`` solves the discrete
+Riccati equation of that sampled system, A_d = I + dt A, B_d = dt B (the same explicit step the
+learned model takes), with the cost Q dt, R dt, so the gain is stable at the rate it runs at.
+The paper's method is the continuous one (``control.riccati: continuous``, the default)."""
 from __future__ import annotations
 
 import numpy as np
@@ -19,6 +29,16 @@ def _care_gain(A, B, Q, R) -> np.ndarray:
     res = S @ A + A.T @ S - S @ B @ K + Q
     if not np.all(np.isfinite(K)) or np.abs(res).max() > 1e-4 * max(np.abs(Q).max(), 1e-300):
         raise np.linalg.LinAlgError("the Riccati solution does not solve the equation (ill-posed)")
+    return K
+
+
+def _dare_gain(A, B, Q, R, dt: float) -> np.ndarray:
+    Ad, Bd = np.eye(len(A)) + dt * A, dt * B
+    P = scipy.linalg.solve_discrete_are(Ad, Bd, Q * dt, R * dt)
+    K = np.linalg.solve(R * dt + Bd.T @ P @ Bd, Bd.T @ P @ Ad)
+    res = Ad.T @ P @ Ad - P - Ad.T @ P @ Bd @ K + Q * dt
+    if not np.all(np.isfinite(K)) or np.abs(res).max() > 1e-4 * max(np.abs(Q * dt).max(), 1e-300):
+        raise np.linalg.LinAlgError("the discrete Riccati solution does not solve the equation (ill-posed)")
     return K
 
 
@@ -43,8 +63,9 @@ def controllable_basis(A: np.ndarray, B: np.ndarray, rtol: float = 1e-9) -> np.n
     return V
 
 
-def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """K = R^-1 B^T S with 0 = S A + A^T S - S B R^-1 B^T S + Q.
+def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: float | None = None) -> np.ndarray:
+    """K = R^-1 B^T S with 0 = S A + A^T S - S B R^-1 B^T S + Q; with ``dt`` the gain of the
+    sampled system (module docstring).
 
     A system with uncontrollable marginal modes (a rigid multicopter without rotor reaction
     torque cannot yaw) has no stabilising Riccati solution; then the gain is designed on the
@@ -53,8 +74,9 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.n
     that grows (the system is not stabilisable) raises LqrFailure."""
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
         raise LqrFailure("A or B is not finite")
+    gain = _care_gain if dt is None else (lambda *m: _dare_gain(*m, dt))
     try:
-        return _care_gain(A, B, Q, R)
+        return gain(A, B, Q, R)
     except (np.linalg.LinAlgError, ValueError) as first:
         T = controllable_basis(A, B)
         if T.shape[1] in (0, len(A)):
@@ -65,7 +87,7 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.n
         if growth > 1e-6 * max(1.0, np.abs(A).max()):
             raise LqrFailure(f"{first}; an uncontrollable mode grows at rate {growth:.3g}") from first
         try:
-            return _care_gain(T.T @ A @ T, T.T @ B, T.T @ Q @ T, R) @ T.T
+            return gain(T.T @ A @ T, T.T @ B, T.T @ Q @ T, R) @ T.T
         except (np.linalg.LinAlgError, ValueError) as err:
             raise LqrFailure(f"{first}; on the controllable subspace: {err}") from err
 

@@ -40,12 +40,14 @@ class RelinearizingLQR:
     name = "ours"
 
     def __init__(self, dyn: LearnedDynamics, q_diag: np.ndarray, r: float, kp: float, kd: float, n: int,
-                 max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None):
+                 max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None,
+                 dt: float | None = None):
         if n < 1:
             raise ValueError("n must be >= 1")
         self.dyn, self.kp, self.kd, self.n, self.max_thrust = dyn, kp, kd, int(n), max_thrust
         self.Q, self.R = np.diag(q_diag), r * np.eye(dyn.m)
         self.relinearize = relinearize
+        self.dt = dt   # None: continuous Riccati (the paper); a step: the sampled-data gain
         self.x_op, self.u_op = x_op, u_op
         self.u0 = np.zeros(dyn.m) if u0 is None else np.asarray(u0, dtype=float)
         self.e = dyn.slices["e"]
@@ -65,7 +67,7 @@ class RelinearizingLQR:
             if self.x_op is None or self.u_op is None:
                 raise ValueError("relinearize=False needs an operating point (x_op, u_op)")
             _, A, B = self.dyn.linearize(self.x_op, self.u_op)
-            self.K = lqr_gain(A, B, self.Q, self.R)
+            self.K = lqr_gain(A, B, self.Q, self.R, self.dt)
             self.u_oper = np.asarray(self.u_op, dtype=float).copy()
 
     def act(self, t: float, state: State) -> np.ndarray:
@@ -74,7 +76,7 @@ class RelinearizingLQR:
             if self.relinearize:
                 t0 = time.perf_counter()
                 x_dot, A, B = self.dyn.linearize(x, self.u)
-                self.K = lqr_gain(A, B, self.Q, self.R)
+                self.K = lqr_gain(A, B, self.Q, self.R, self.dt)
                 self.timings.append(time.perf_counter() - t0)
                 self.u_oper = self.u.copy()
             else:

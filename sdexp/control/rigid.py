@@ -126,10 +126,12 @@ class RigidLQR:
     ``update_every`` control steps (deformed shape)."""
 
     def __init__(self, geometry: Callable[[], RigidGeometry], q_e: float, q_p: float, velocity_scale: float,
-                 r: float, gravity: float, update_every: int | None = None, name: str = "rigid_lqr"):
+                 r: float, gravity: float, update_every: int | None = None, name: str = "rigid_lqr",
+                 dt: float | None = None):
         self.geometry, self.gravity, self.update_every, self.name = geometry, gravity, update_every, name
         self.q_e, self.q_p, self.velocity_scale, self.r = q_e, q_p, velocity_scale, r
         self.K = None
+        self.dt = dt   # None: continuous Riccati; a step: the sampled-data gain (sdexp.control.lqr)
 
     def _design(self) -> None:
         geom = self.geometry()
@@ -139,7 +141,7 @@ class RigidLQR:
         A, B = linearize_rigid(geom, self.gravity, np.zeros(2 * (dim + self._ne)), self.u_star)
         q = np.concatenate([np.full(dim, self.q_p), np.full(self._ne, self.q_e)])
         Q = np.diag(np.concatenate([q, q * self.velocity_scale]))
-        self.K = lqr_gain(A, B, Q, self.r * np.eye(len(self.u_star)))
+        self.K = lqr_gain(A, B, Q, self.r * np.eye(len(self.u_star)), self.dt)
 
     def reset(self, task: Task) -> None:
         self.task, self.k = task, 0

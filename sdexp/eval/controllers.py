@@ -30,10 +30,15 @@ def geometry_of(sim: Simulator, rest: bool) -> RigidGeometry:
     return RigidGeometry(mass, inertia, pos, dirs)
 
 
+def riccati_step(cfg) -> float | None:
+    """None for the paper's continuous Riccati gain, the control interval for the sampled one."""
+    return float(cfg.sim.control_dt) if cfg.control.riccati == "discrete" else None
+
+
 def ours(cfg, dyn, max_thrust: float, **kw) -> RelinearizingLQR:
     c = cfg.control
     q = state_weights(state_sizes_of(dyn), c.q_s, c.q_e, c.q_p, c.velocity_scale)
-    return RelinearizingLQR(dyn, q, c.r, c.kp, c.kd, c.n, max_thrust, **kw)
+    return RelinearizingLQR(dyn, q, c.r, c.kp, c.kd, c.n, max_thrust, dt=riccati_step(cfg), **kw)
 
 
 def state_sizes_of(dyn) -> dict[str, int]:
@@ -47,10 +52,10 @@ def build(name: str, cfg, sim: Simulator, dyn=None, data=None, trained=None, pro
         return ours(cfg, dyn, sim.drone.max_thrust)
     if name == "rigid_lqr":
         geom = geometry_of(sim, rest=True)
-        return RigidLQR(lambda: geom, c.q_e, c.q_p, c.velocity_scale, c.r, g, name=name)
+        return RigidLQR(lambda: geom, c.q_e, c.q_p, c.velocity_scale, c.r, g, name=name, dt=riccati_step(cfg))
     if name == "geometry_lqr":
         return RigidLQR(lambda: geometry_of(sim, rest=False), c.q_e, c.q_p, c.velocity_scale, c.r, g,
-                        update_every=1, name=name)
+                        update_every=1, name=name, dt=riccati_step(cfg))
     if name == "neural":
         a = data.arrays
         x = np.concatenate([np.asarray(a[k]).reshape(len(a[k]), -1) for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot")], 1)

@@ -203,3 +203,18 @@ def test_state_weights_follow_the_state_layout():
     np.testing.assert_array_equal(q, [100, 100, 50, 50, 50, 25, 200, 200, 100, 100])
     q3 = state_weights({"n_s": 0, "n_e": 3, "dim": 3}, 1.0, 2.0, 3.0, 1.0)
     np.testing.assert_array_equal(q3, [2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3])
+
+
+def test_sampled_gain_approaches_the_continuous_one_and_stays_stable_where_it_does_not():
+    """lqr_gain(dt=...) designs for x_{k+1} = (I + dt A) x_k + dt B u_k: as dt -> 0 it tends to
+    the continuous gain; at a coarse step the continuous gain's sampled loop is unstable while
+    the sampled design's is not."""
+    A = np.array([[0.0, 1.0], [0.0, 0.0]])
+    B = np.array([[0.0], [1.0]])
+    Q, R = np.diag([1e6, 1.0]), np.eye(1)       # continuous poles at -22 +- 22j
+    Kc = lqr_gain(A, B, Q, R)
+    assert np.allclose(lqr_gain(A, B, Q, R, dt=1e-6), Kc, rtol=1e-2)
+    dt = 0.05
+    Kd = lqr_gain(A, B, Q, R, dt=dt)
+    radius = lambda K: np.abs(np.linalg.eigvals(np.eye(2) + dt * (A - B @ K))).max()
+    assert radius(Kc) > 1.0 > radius(Kd)
