@@ -105,6 +105,7 @@ def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
         chunk_samples = max(CHUNK_SAMPLES, steps)
     sim = OmegaConf.to_container(cfg.sim, resolve=True)
     sim.pop("threads", None)  # generation always runs single-threaded (generate.py)
+    sim["obstacles"] = []  # a task's scenery: the data are free flights (supplement F)
     if not sim.get("effects"):
         sim.pop("effects", None)  # the nominal simulator: same key as before effects existed
     return {

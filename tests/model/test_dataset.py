@@ -228,3 +228,10 @@ def test_thrust_range_narrows_the_holds_and_keys_the_cache(reference, tmp_path):
     paper = make_cfg(str(tmp_path), "data.thrust_range=[-1.0,1.0]")
     assert dataset_key(dataset_spec(paper, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))   # the default
     assert dataset_key(dataset_spec(narrow, CHUNK)) != dataset_key(dataset_spec(make_cfg(str(tmp_path), "data.samples=400"), CHUNK))
+
+
+def test_obstacles_are_scenery_not_part_of_the_data(reference):
+    cfg, _ = reference
+    boxed = make_cfg(cfg.cache_dir, "sim.obstacles=[{min:[3,-6],max:[4,6]}]")
+    assert dataset_key(dataset_spec(boxed, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))
+    assert dataset_spec(boxed, CHUNK)["sim"]["obstacles"] == []
