@@ -133,7 +133,8 @@ class RigidLQR:
         self.K = None
         self.dt = dt   # None: continuous Riccati; a step: the sampled-data gain (sdexp.control.lqr)
 
-    def _design(self) -> None:
+    def design(self) -> None:
+        """Measure the geometry, find the hover thrust, linearise, solve for K."""
         geom = self.geometry()
         dim = geom.dim
         self._ne = 3 if dim == 3 else 1
@@ -145,11 +146,11 @@ class RigidLQR:
 
     def reset(self, task: Task) -> None:
         self.task, self.k = task, 0
-        self._design()
+        self.design()
 
     def act(self, t: float, state: State) -> np.ndarray:
         if self.update_every and self.k % self.update_every == 0 and self.k > 0:
-            self._design()
+            self.design()
         self.k += 1
         goal = self.task.goal(t)
         err = rigid_state(state) - np.concatenate([goal.p, goal.e, goal.p_dot, goal.e_dot])

@@ -74,7 +74,7 @@ def _run(cfg, out_dir: Path) -> dict:
     redesign = []
     for st in states[: max(10, len(states) // 10)]:
         t0 = time.perf_counter()
-        geo._design()
+        geo.design()
         redesign.append(time.perf_counter() - t0)
     rows = [{"quantity": "relinearization (Jacobians + Riccati)", **_ms(total)},
             {"quantity": "  Jacobians of d, g, h (autograd)", **_ms(jac)},
