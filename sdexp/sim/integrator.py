@@ -48,8 +48,10 @@ def rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs):
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
-def integrate(x, v, fbuf, minv, ext, dt, damping, gravity, ground, boxes_min, boxes_max, friction):
+def integrate(x, v, fbuf, minv, ext, fext, dt, damping, gravity, ground, boxes_min, boxes_max, friction):
     """Symplectic Euler with implicit mass-proportional damping, then contact projection.
+    ``fext`` (nv, dim): external forces other than thrust (effects' body hooks), held over
+    the control step; zeros when no effect pushes on the body.
     ``ground`` is -inf when there is no ground; minv = 0 pins a vertex. Serial: per vertex it
     is a few dozen flops, less than the cost of a parallel region on meshes this size.
     Returns the largest squared speed."""
@@ -59,9 +61,9 @@ def integrate(x, v, fbuf, minv, ext, dt, damping, gravity, ground, boxes_min, bo
     vmax2 = 0.0
     scale = 1.0 / (1.0 + dt * damping)
     for i in range(nv):
-        fx = ext[i, 0]; fy = ext[i, 1]; fz = 0.0
+        fx = ext[i, 0] + fext[i, 0]; fy = ext[i, 1] + fext[i, 1]; fz = 0.0
         if dim == 3:
-            fz = ext[i, 2]
+            fz = ext[i, 2] + fext[i, 2]
         for t in range(nt):
             fx += fbuf[t, i, 0]; fy += fbuf[t, i, 1]
             if dim == 3:
@@ -126,7 +128,7 @@ def integrate(x, v, fbuf, minv, ext, dt, damping, gravity, ground, boxes_min, bo
 @nb.njit(cache=True)
 def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, damping,
             gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
-            weights, thrust, ext, dirs):
+            weights, thrust, ext, dirs, fext):
     """Run n_sub substeps; one force buffer per thread in fbuf (nt, nv, dim). ``kernel``: the
     C-signature 3D force kernel (sdexp.sim.native).
     Returns (max inverted elements seen, max squared speed)."""
@@ -140,7 +142,7 @@ def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, dam
             inv = elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf)
         worst = max(worst, inv)
         rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs)
-        vmax2 = max(vmax2, integrate(x, v, fbuf, minv, ext, dt, damping, gravity, ground,
+        vmax2 = max(vmax2, integrate(x, v, fbuf, minv, ext, fext, dt, damping, gravity, ground,
                                      boxes_min, boxes_max, friction))
     return worst, vmax2
 
@@ -167,6 +169,7 @@ class Body:
         if pinned is not None:
             self.minv[pinned] = 0.0
         self.ext = np.zeros_like(self.x)
+        self.fext = np.zeros_like(self.x)   # effects' external forces (sdexp.sim.effects)
         m = 0 if rotors is None else rotors.count
         self.dirs = np.zeros((m, d))
         self.rotors = _NO_ROTORS if rotors is None else (
@@ -183,4 +186,4 @@ class Body:
         return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
                        f.Bm, f.vol, f.mu, f.lam, self.minv, damping, gravity, self.ground,
                        self.boxes_min, self.boxes_max, self.friction, *self.rotors, thrust,
-                       self.ext, self.dirs)
+                       self.ext, self.dirs, self.fext)

@@ -5,6 +5,10 @@ failure reason; nothing raises.
 Actuation: the command is clipped to [-max_thrust, max_thrust], held back by the output delay
 (a FIFO of whole control steps), perturbed by Gaussian rotor noise, and applied along each
 rotor patch's current surface normal for the whole interval.
+
+Effects (``sim.effects``, sdexp.sim.effects) hook in at the model (mass, stiffness, damping),
+the actuators (after the rotor noise), the body (external forces held over the control step)
+and the sensors (before the sensor noise). With no effects the step is what it was.
 """
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from sdexp.sim.drone import Drone
+from sdexp.sim.effects import build_effects, overrides
 from sdexp.sim.fem import stable_substep
 from sdexp.sim.integrator import Body
 from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
@@ -38,13 +43,23 @@ class Failure:
 
 
 class Simulator:
-    def __init__(self, drone: Drone, sim_cfg, noise_cfg, seed: int = 0):
+    def __init__(self, drone: Drone, sim_cfg, noise_cfg, seed: int = 0, effects=None):
+        """``effects``: Effect objects or entries; None = the ``sim.effects`` list."""
         self.drone = drone
         # plain dataclasses: a DictConfig attribute read costs microseconds, every step
         self.cfg = _plain(sim_cfg)
         self.noise = _plain(noise_cfg)
         self.rng = np.random.default_rng(seed)
-        fem, c, n = drone.fem, self.cfg, self.noise
+        self.effects = build_effects(getattr(self.cfg, "effects", []) if effects is None else effects)
+        self.fem, damping = drone.fem, drone.damping
+        for e in self.effects:
+            self.fem, damping = e.modify_model(self.fem, damping, drone)
+        # None: read drone.damping at every step (callers may change it after construction)
+        self._damping = damping if any(overrides(e, "modify_model") for e in self.effects) else None
+        self._act = [e for e in self.effects if overrides(e, "actuate")]
+        self._push = [e for e in self.effects if overrides(e, "body_forces")]
+        self._sense = [e for e in self.effects if overrides(e, "sense")]
+        fem, c, n = self.fem, self.cfg, self.noise
         dt_stable = stable_substep(fem, c.stability_safety)
         dt_max = c.substep if c.substep is not None else dt_stable
         self.n_sub = int(np.ceil(c.control_dt / dt_max - 1e-9))
@@ -53,13 +68,16 @@ class Simulator:
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
         self._delay_steps = int(round(n.delay / c.control_dt)) if n.enabled else 0
         self._rest_extent = np.ptp(fem.rest, axis=0).max()
+        self.body = None
+        for e in self.effects:
+            e.setup(self)
         self.reset()
 
     # -------------------------------------------------------------------------------- state
     def reset(self, position=None) -> Readings:
         c = self.cfg
         boxes = list(c.obstacles)
-        self.body = Body(self.drone.fem, self.threads, self.drone.rotors, c.ground,
+        self.body = Body(self.fem, self.threads, self.drone.rotors, c.ground,
                          [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
                          c.friction)
         if position is not None:
@@ -68,7 +86,28 @@ class Simulator:
         self.failure: Failure | None = None
         self.applied = np.zeros(self.drone.num_rotors)
         self._queue = deque([np.zeros(self.drone.num_rotors)] * self._delay_steps)
+        for e in self.effects:
+            e.reset(self)
         return self.readings()
+
+    def set_state(self, x, v, rotation=None, t: float = 0.0, history=()) -> None:
+        """Re-initialise from a given state: vertex positions and velocities, the element
+        rotations warm-started at ``rotation`` (3x3, 3D; else identity), and the actuation chain
+        (output delay, effect states such as motor lag) replayed with the past commands
+        ``history`` (oldest first) without moving the body."""
+        from sdexp.sim.rotations import quat_from_matrix
+        self.reset()
+        self.body.x[:] = x
+        self.body.v[:] = v
+        if rotation is not None and self.drone.dim == 3:
+            self.body.q[:] = quat_from_matrix(np.asarray(rotation))
+        self.t = float(t)
+        for u in history:
+            self.applied = self._actuate(u, noisy=False)
+
+    @property
+    def damping(self) -> float:
+        return self.drone.damping if self._damping is None else self._damping
 
     @property
     def alive(self) -> bool:
@@ -85,6 +124,8 @@ class Simulator:
 
     def readings(self, noisy: bool = True) -> Readings:
         r = read_imus(self.t, self.body.x, self.body.v, self.drone.imus)
+        for e in self._sense:  # a sensor's systematic error is part of what it reads
+            r = e.sense(r, self)
         return add_noise(r, self.noise, self.rng) if noisy else r
 
     def state(self, noisy: bool = True) -> State:
@@ -101,22 +142,34 @@ class Simulator:
         After a failure the state is frozen and the same readings come back."""
         if self.failure is not None:
             return self.readings()
+        cmd = self._actuate(u, noisy=True)
+        self.applied = cmd
+        if self._push:
+            f = self.body.fext
+            f[:] = 0.0
+            for e in self._push:
+                e.body_forces(self, f)
+        self._advance(cmd)
+        return self.readings()
+
+    def _actuate(self, u, noisy: bool) -> np.ndarray:
+        """Commanded -> applied thrust: clip, output delay, rotor noise, actuator effects."""
         tmax = self.drone.max_thrust
         cmd = np.clip(np.asarray(u, dtype=float), -tmax, tmax)
         if self._delay_steps:
             self._queue.append(cmd)
             cmd = self._queue.popleft()
-        if self.noise.enabled and self.noise.rotor_std > 0:
+        if noisy and self.noise.enabled and self.noise.rotor_std > 0:
             cmd = cmd + self.rng.normal(0.0, self.noise.rotor_std, cmd.shape)
-        self.applied = cmd
-        self._advance(cmd)
-        return self.readings()
+        for e in self._act:
+            cmd = e.actuate(cmd, self)
+        return cmd
 
     def _advance(self, thrust: np.ndarray) -> None:
         body = self.body
         x_prev, v_prev = body.x.copy(), body.v.copy()
         numba.set_num_threads(self.threads)
-        inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.drone.damping, self.cfg.gravity)
+        inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity)
         self.t += self.cfg.control_dt
         reason = None
         if not (np.isfinite(vmax2) and np.all(np.isfinite(body.x))):

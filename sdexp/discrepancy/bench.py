@@ -1,0 +1,336 @@
+"""``sdexp experiment=discrepancy_bench``: the workflow on logs with hidden effects.
+
+Scenarios: every library effect at two strengths and several seeds, null scenarios (the
+nominal simulator), a few two-effect combinations and a few effects outside the library
+(``unmodelled``: the honest answer is ``unexplained``). Each scenario records logs with the
+hidden effects, keeps the label to itself, runs the workflow on the logs only and compares.
+Writes scenarios.csv, confusion.csv/png, metrics (top-1 accuracy, null false-positive rate,
+parameter error, held-out gap reduction) and the wall time.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import OmegaConf
+
+from sdexp.cache import atomic_write
+from sdexp.sim.effects import Effect, patch_means, rotor_normals
+
+# (moderate, strong) strength of each library effect; direction-like parts drawn per seed
+STRENGTHS = {
+    "rotor_reaction_torque": ("k", 0.15, 0.3),
+    "rotor_drag": ("k", 0.6, 1.5),
+    "quadratic_drag": ("c", 0.3, 0.7),     # rho C_d / 2 of a flat plate is ~0.7
+    "ground_effect": ("radius", 1.0, 1.6),
+    "motor_lag": ("tau", 0.06, 0.12),
+    "actuation_delay": ("delay", 0.02, 0.05),
+    "wind": ("velocity", 1.5, 3.0),
+    "thrust_loss": ("fraction", 0.15, 0.3),
+    "payload": ("mass", 0.1, 0.25),
+    "stiffness_scale": ("scale", 0.6, 1.8),
+    "damping_scale": ("scale", 0.5, 2.0),
+    "imu_bias": ("value", 0.02, 0.05),
+}
+
+COMBOS = [("rotor_drag", "motor_lag"), ("payload", "imu_bias"), ("wind", "ground_effect")]
+
+
+class RotorTilt(Effect):
+    """Outside the library (an ``unmodelled`` scenario): rotor 0 is mounted tilted by ``angle``
+    about its patch's local horizontal, so part of its thrust pushes sideways."""
+    name = "rotor_tilt"
+
+    def __init__(self, angle: float = 0.15, rotor: int = 0):
+        self.angle, self.rotor = float(angle), int(rotor)
+
+    def body_forces(self, sim, f):
+        r = sim.drone.rotors
+        n = rotor_normals(sim.body.x, r)[self.rotor]
+        side = np.zeros_like(n)
+        side[0] = 1.0
+        side -= (side @ n) * n
+        side /= np.linalg.norm(side)
+        i0, i1 = r.vert_ptr[self.rotor], r.vert_ptr[self.rotor + 1]
+        F = sim.applied[self.rotor] * np.sin(self.angle) * side
+        f[r.verts[i0:i1]] += F * r.weights[i0:i1, None]
+
+
+def effect_entry(name: str, level: int, rng, drone) -> dict:
+    key, *values = STRENGTHS[name]
+    v = values[level]
+    dim = drone.dim
+    if name == "wind":
+        d = rng.normal(size=2 if dim == 3 else 1)
+        d /= np.linalg.norm(d)
+        vel = np.zeros(dim)
+        vel[[0, 2] if dim == 3 else [0]] = v * d
+        return {"name": "wind", "velocity": vel.tolist()}
+    if name == "thrust_loss":
+        return {"name": name, "rotor": int(rng.integers(drone.num_rotors)), "fraction": v}
+    if name == "payload":
+        ext = np.ptp(drone.fem.rest, axis=0)
+        point = drone.fem.mass @ drone.fem.rest / drone.fem.mass.sum()
+        point[0] += rng.uniform(-0.25, 0.25) * ext[0]
+        if dim == 3:
+            point[2] += rng.uniform(-0.25, 0.25) * ext[2]
+        return {"name": name, "mass": v, "point": point.tolist()}
+    if name == "imu_bias":
+        d = rng.normal(size=2)
+        d /= np.linalg.norm(d)
+        value = [v * d[0], 0.0, v * d[1]] if dim == 3 else [v * d[0]]
+        return {"name": name, "channel": "rot", "value": value}
+    if name == "rotor_reaction_torque":
+        return {"name": name, "k": v * rng.choice([-1.0, 1.0])}
+    return {"name": name, key: v}
+
+
+def scenarios(drone, names, seeds: int, nulls: int, combos: bool, unmodelled: int, seed0: int = 0,
+              levels=(0, 1)) -> list[dict]:
+    out = []
+    k = 0
+    for name in names:
+        for level in levels:
+            for s in range(seeds):
+                rng = np.random.default_rng([seed0, k])
+                out.append({"id": f"{name}-{'ab'[level]}{s}", "kind": "single", "truth": [name],
+                            "effects": [effect_entry(name, level, rng, drone)], "seed": seed0 + 1000 + k})
+                k += 1
+    for s in range(nulls):
+        out.append({"id": f"null-{s}", "kind": "null", "truth": [], "effects": [], "seed": seed0 + 1000 + k})
+        k += 1
+    for a, b in (COMBOS if combos else []):
+        if a in names and b in names:
+            rng = np.random.default_rng([seed0, k])
+            out.append({"id": f"{a}+{b}", "kind": "combo", "truth": [a, b],
+                        "effects": [effect_entry(a, 1, rng, drone), effect_entry(b, 1, rng, drone)],
+                        "seed": seed0 + 1000 + k})
+            k += 1
+    for s in range(unmodelled):
+        out.append({"id": f"rotor_tilt-{s}", "kind": "unmodelled", "truth": ["rotor_tilt"],
+                    "effects": [{"_target_": "sdexp.discrepancy.bench.RotorTilt", "angle": 0.12 + 0.06 * s,
+                                 "rotor": s % drone.num_rotors}], "seed": seed0 + 1000 + k})
+        k += 1
+    return out
+
+
+def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, cache_dir: str, report=None) -> dict:
+    """Record the scenario's logs with its hidden effects, run the workflow, compare."""
+    from sdexp.discrepancy.record import record_flights
+    from sdexp.discrepancy.workflow import run_workflow
+    from sdexp.sim.drone import build_drone
+
+    t0 = time.perf_counter()
+    folder = Path(out_dir) / sc["id"]
+    drone = build_drone(drone_cfg, cache_dir)
+    r = dcfg.record
+    record_flights(drone, sim_cfg, noise_cfg, folder / "logs", int(r.flights), float(r.seconds), list(r.manoeuvres),
+                   int(sc["seed"]), float(r.height), float(r.ground), float(r.amplitude), effects=sc["effects"])
+    rep = run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, folder / "logs", folder / "workflow", cache_dir,
+                       seed=int(sc["seed"]), plots=False, log=lambda *a: None)
+    named = [e["name"] for e in rep["effects"]]
+    top1 = named[0] if named else rep["verdict"]
+    row = {"id": sc["id"], "kind": sc["kind"], "truth": "+".join(sc["truth"]) or "none",
+           "verdict": rep["verdict"], "top1": top1, "named": "+".join(named), "ties": "+".join(rep["ties"]),
+           "gap_before": rep["gap"]["gap_before"], "gap_after": rep["gap"]["gap_after"],
+           "gap_reduction": rep["gap"]["reduction"], "held_loss_before": rep["gap"]["held_loss_before"],
+           "held_loss_after": rep["gap"]["held_loss_after"], "rollouts": rep["rollouts"],
+           "seconds": time.perf_counter() - t0, "true_effects": json.dumps(sc["effects"]),
+           "fitted": json.dumps(rep["effects"])}
+    row.update(param_error(sc, rep))
+    row.update(oracle_gap(sc, folder, drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir))
+    if report:
+        report(1)
+    return row
+
+
+def oracle_gap(sc: dict, folder: Path, drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir: str) -> dict:
+    """The gap the workflow closed, measured against the one it could close: held-out loss of
+    the nominal simulator, of the fitted one and of the simulator with the true (hidden)
+    effects, on the workflow's held-out windows. reduction = (nominal - fitted) / (nominal -
+    true), capped at 1. (The workflow's own gap is against the noise floor of other flights,
+    which differs from flight set to flight set by more than a moderate effect's gap.)"""
+    from sdexp.discrepancy.fit import window_loss
+    from sdexp.discrepancy.localize import noise_floor
+    from sdexp.discrepancy.logs import read_logs
+    from sdexp.discrepancy.windows import Predictor, make_windows, subset
+    from sdexp.discrepancy.workflow import prepare, split_flights, steps_of, trimmed
+
+    folder = Path(folder)
+    logs = read_logs(folder / "logs", drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
+    h, stride, hist = steps_of(dcfg, logs.dt)
+    w = make_windows(logs.flights, logs.channels, h, stride, hist)
+    _, held_ids = split_flights(len(logs.flights), dcfg.holdout)
+    held = subset(w, held_ids)
+    bend, r_floor, _ = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
+    sigma = noise_floor(r_floor)
+    pred = Predictor(drone, sim_cfg, noise_cfg, bend)
+    fitted = list(OmegaConf.load(folder / "workflow" / "sim_fitted.yaml").effects or [])
+    fitted = [OmegaConf.to_container(e, resolve=True) for e in fitted]
+    loss = lambda eff: trimmed(window_loss(pred.residual(held, eff), sigma))
+    L_nom = loss([])
+    L_fit = loss(fitted) if fitted else L_nom
+    L_true = loss(sc["effects"]) if sc["effects"] else L_nom
+    closable = L_nom - L_true
+    return {"oracle_loss_nominal": L_nom, "oracle_loss_fitted": L_fit, "oracle_loss_true": L_true,
+            "oracle_gap_reduction": float(min(1.0, (L_nom - L_fit) / closable)) if closable > 0 else None}
+
+
+def param_error(sc: dict, rep: dict) -> dict:
+    """Relative error of the strength parameter of the first true effect, when it was named."""
+    if sc["kind"] not in ("single", "combo") or not rep["effects"]:
+        return {"param_error": None}
+    truth = sc["effects"][0]
+    fitted = next((e for e in rep["effects"] if e["name"] == truth["name"]), None)
+    if fitted is None:
+        return {"param_error": None}
+    key = STRENGTHS[truth["name"]][0]
+    p = fitted["params"]
+    if truth["name"] in ("wind", "imu_bias"):
+        t, f = np.asarray(truth[key], float), np.asarray(p[key], float)
+        return {"param_error": float(np.linalg.norm(f - t) / np.linalg.norm(t))}
+    if truth["name"] == "thrust_loss" and p.get("rotor") != truth["rotor"]:
+        return {"param_error": 1.0}
+    return {"param_error": float(abs(p[key] - truth[key]) / abs(truth[key]))}
+
+
+def rescore_row(row: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, scen_dir: str, cache_dir: str, report=None) -> dict:
+    """oracle_gap for a scenario already run (a row of scenarios.csv and its folder)."""
+    from sdexp.sim.drone import build_drone
+    drone = build_drone(drone_cfg, cache_dir)
+    sc = {"effects": json.loads(row["true_effects"])}
+    out = {**row, **oracle_gap(sc, Path(scen_dir) / row["id"], drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)}
+    if report:
+        report(1)
+    return out
+
+
+def summarize(table: pd.DataFrame) -> dict:
+    table = table.copy()
+    for col in ("named", "ties", "top1", "truth", "verdict"):   # empty cells read back as NaN
+        table[col] = table[col].fillna("").astype(str)
+    single = table[table.kind == "single"]
+    null = table[table.kind == "null"]
+    combo = table[table.kind == "combo"]
+    unmod = table[table.kind == "unmodelled"]
+    effect = table[table.kind.isin(["single", "combo"])]
+    red = effect.gap_reduction.fillna(0.0).clip(upper=1.0)
+    oracle = effect.oracle_gap_reduction if "oracle_gap_reduction" in effect else pd.Series(dtype=float)
+    # a gap counts when the true effects cut the nominal held-out loss by >= 5% (the workflow's
+    # min_gain): below that the hidden effect is not visible in these flights at all
+    if "oracle_loss_nominal" in effect:
+        measurable = (effect.oracle_loss_nominal - effect.oracle_loss_true) >= 0.05 * effect.oracle_loss_nominal
+    else:
+        measurable = oracle.notna()
+    out = {
+        "scenarios": int(len(table)),
+        "top1_accuracy": float(np.mean(single.top1 == single.truth)) if len(single) else None,
+        "top1_or_tie_accuracy": float(np.mean([t == s or t in ties.split("+") for t, s, ties in
+                                               zip(single.truth, single.top1, single.ties)])) if len(single) else None,
+        "null_false_positive_rate": float(np.mean(null.verdict != "none")) if len(null) else None,
+        "combo_first_in_truth": float(np.mean([a in t.split("+") for a, t in zip(combo.top1, combo.truth)]))
+        if len(combo) else None,
+        "combo_both_found": float(np.mean([set(n.split("+")) == set(t.split("+")) for n, t in
+                                           zip(combo.named, combo.truth)])) if len(combo) else None,
+        "unmodelled_answered_unexplained": float(np.mean(unmod.verdict == "unexplained")) if len(unmod) else None,
+        "median_gap_reduction_vs_floor": float(np.median(red)) if len(red) else None,
+        # against the gap the true effects close (scenarios where they close any), unnamed = 0
+        "median_gap_reduction": float(np.median(oracle[measurable].clip(lower=-1.0))) if measurable.any() else None,
+        "gap_measurable_scenarios": int(measurable.sum()),
+        "mean_gap_reduction": float(np.mean(oracle[measurable].clip(lower=-1.0))) if measurable.any() else None,
+        "scenario_seconds_median": float(np.median(table.seconds)) if "seconds" in table else None,
+        "scenario_seconds_total": float(np.sum(table.seconds)) if "seconds" in table else None,
+        "median_param_error": float(np.nanmedian(single.param_error.astype(float))) if single.param_error.notna().any() else None,
+        "per_effect_top1": {n: float(np.mean(g.top1 == n)) for n, g in single.groupby("truth")},
+    }
+    out["targets_met"] = {
+        "top1_accuracy>=0.9": out["top1_accuracy"] is not None and out["top1_accuracy"] >= 0.9,
+        "null_false_positive_rate<=0.05": out["null_false_positive_rate"] is not None and out["null_false_positive_rate"] <= 0.05,
+        "median_gap_reduction>=0.8": out["median_gap_reduction"] is not None and out["median_gap_reduction"] >= 0.8,
+    }
+    return out
+
+
+def confusion(table: pd.DataFrame) -> pd.DataFrame:
+    t = table[table.kind.isin(["single", "null", "unmodelled"])]
+    return pd.crosstab(t.truth, t.top1).rename_axis(index="truth", columns="named")
+
+
+def confusion_plot(cm: pd.DataFrame, path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(1.2 + 0.45 * cm.shape[1], 1.2 + 0.4 * cm.shape[0]))
+    ax.imshow(cm.to_numpy(), cmap="Blues")
+    ax.set_xticks(range(cm.shape[1]), cm.columns, rotation=90, fontsize=7)
+    ax.set_yticks(range(cm.shape[0]), cm.index, fontsize=7)
+    for (i, j), v in np.ndenumerate(cm.to_numpy()):
+        if v:
+            ax.text(j, i, str(v), ha="center", va="center", fontsize=7)
+    ax.set_xlabel("workflow's answer (top-1)")
+    ax.set_ylabel("hidden effect")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_dir: str, seed: int = 0,
+              workers: int = 2, progress=None) -> dict:
+    from sdexp.discrepancy.workflow import prepare
+    from sdexp.parallel import run_spawned
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.effects import LIBRARY
+
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    drone = build_drone(drone_cfg, cache_dir)
+    names = list(params.get("effects") or LIBRARY)
+    if drone.dim == 2 and "rotor_reaction_torque" in names:
+        names.remove("rotor_reaction_torque")
+    scs = scenarios(drone, names, int(params.seeds), int(params.nulls), bool(params.combos),
+                    int(params.unmodelled), seed, tuple(params.get("levels") or (0, 1)))
+    prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)   # cache it once for every worker
+    from sdexp.config import DiscrepancyConfig, DroneConfig, NoiseConfig, SimConfig
+    # detached structured copies: what the spawned workers need, and nothing of the root config
+    args = [OmegaConf.merge(OmegaConf.structured(T), OmegaConf.to_container(x, resolve=True)
+                            if OmegaConf.is_config(x) else x)
+            for T, x in ((DroneConfig, drone_cfg), (SimConfig, sim_cfg), (NoiseConfig, noise_cfg),
+                         (DiscrepancyConfig, dcfg))]
+    # each scenario's logs and workflow outputs (~1.5 MB each): outside a results folder
+    scen_dir = str(params.get("scenario_dir") or out_dir / "scenarios")
+    if params.get("rescore"):
+        # re-score the scenarios of an earlier run (its scenarios.csv and folders) with this code
+        old = pd.read_csv(out_dir / "scenarios.csv", keep_default_na=False, na_values=[""]).to_dict("records")
+        fn, tasks = rescore_row, [(r, *args, scen_dir, cache_dir) for r in old]
+    else:
+        fn, tasks = run_scenario, [(sc, *args, scen_dir, cache_dir) for sc in scs]
+    if workers > 1:
+        rows = run_spawned(fn, tasks, workers, progress)
+    else:
+        rows = [fn(*t, report=progress) for t in tasks]
+    table = pd.DataFrame(rows)
+    atomic_write(out_dir / "scenarios.csv", lambda tmp: table.to_csv(tmp, index=False))
+    cm = confusion(table)
+    atomic_write(out_dir / "confusion.csv", lambda tmp: cm.to_csv(tmp))
+    confusion_plot(cm, out_dir / "confusion.png")
+    metrics = summarize(table)
+    metrics["wall_seconds"] = time.perf_counter() - t0
+    metrics["workers"] = workers
+    return metrics
+
+
+def run(cfg, out_dir: Path) -> dict:
+    from tqdm import tqdm
+
+    p = cfg.experiment.params
+    n = None
+    bar = tqdm(total=n, desc="discrepancy_bench scenarios")
+    metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, Path(out_dir), cfg.cache_dir,
+                        int(cfg.seed), int(p.workers), progress=bar.update)
+    bar.close()
+    print(json.dumps(metrics, indent=2))
+    return metrics

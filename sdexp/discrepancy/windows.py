@@ -1,0 +1,111 @@
+"""Prediction windows over a set of flights, and the simulator that predicts them.
+
+A window starts at a measured row, is re-initialised there (sdexp.discrepancy.predict) and
+predicts ``horizon`` control steps driven by the logged commands. Residuals are divided by
+the noise floor sigma[k, c] (per horizon step and channel), so a nominal simulator on
+nominal flights scores 1 per entry on average and every channel weighs by its own noise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from sdexp.discrepancy.logs import angle_columns, channel_names
+from sdexp.discrepancy.predict import BendMap, predict_windows, residuals
+
+
+@dataclass
+class Windows:
+    flights: list            # logs.Flight
+    starts: list             # per flight: array of start rows
+    horizon: int
+    history: int
+    channels: list[str]
+    measured: np.ndarray     # (W, horizon, C)
+    start_rows: np.ndarray   # (W, C) the measured state each window starts from
+    start_u: np.ndarray      # (W, m) the first command of each window
+    flight_of: np.ndarray    # (W,) flight index
+
+    @property
+    def count(self) -> int:
+        return len(self.flight_of)
+
+
+def make_windows(flights, channels, horizon: int, stride: int, history: int) -> Windows:
+    starts, meas, rows, us, fl = [], [], [], [], []
+    for i, f in enumerate(flights):
+        s = np.arange(history, len(f.t) - horizon, stride)
+        starts.append(s)
+        if len(s):
+            idx = s[:, None] + 1 + np.arange(horizon)[None]
+            meas.append(f.y[idx]); rows.append(f.y[s]); us.append(f.u[s]); fl.append(np.full(len(s), i))
+    C = len(channels)
+    cat = lambda a, shape: np.concatenate(a) if a else np.zeros(shape)
+    return Windows(flights, starts, horizon, history, channels, cat(meas, (0, horizon, C)),
+                   cat(rows, (0, C)), cat(us, (0, flights[0].u.shape[1] if flights else 0)),
+                   cat(fl, (0,)).astype(int))
+
+
+def subset(w: Windows, flight_ids) -> Windows:
+    """The windows of some flights only."""
+    ids = list(flight_ids)
+    keep = np.isin(w.flight_of, ids)
+    remap = {f: k for k, f in enumerate(ids)}
+    return Windows([w.flights[f] for f in ids], [w.starts[f] for f in ids], w.horizon, w.history,
+                   w.channels, w.measured[keep], w.start_rows[keep], w.start_u[keep],
+                   np.array([remap[f] for f in w.flight_of[keep]], dtype=int))
+
+
+def thin(w: Windows, at_most: int) -> Windows:
+    """At most ``at_most`` windows, evenly spread over the set (kept in flight order)."""
+    if w.count <= at_most:
+        return w
+    keep = np.zeros(w.count, bool)
+    keep[np.linspace(0, w.count - 1, at_most).round().astype(int)] = True
+    starts, k = [], 0
+    for s in w.starts:
+        starts.append(s[keep[k:k + len(s)]])
+        k += len(s)
+    return Windows(w.flights, starts, w.horizon, w.history, w.channels, w.measured[keep],
+                   w.start_rows[keep], w.start_u[keep], w.flight_of[keep])
+
+
+def prediction_model(noise_cfg) -> tuple:
+    """(noise config, base effects) for predictions: no random noise, and the output delay,
+    part of the nominal model, as an actuation_delay effect (the same whole-step FIFO when the
+    delay is a multiple of the control step, with noise-free readings straight from step)."""
+    from sdexp.sim.simulator import _plain
+    n = _plain(noise_cfg)
+    base = [{"name": "actuation_delay", "delay": float(n.delay)}] if n.enabled and n.delay > 0 else []
+    return replace(n, enabled=False), base
+
+
+class Predictor:
+    """Runs the simulator with given effects over a window set; counts its rollouts."""
+
+    def __init__(self, drone, sim_cfg, noise_cfg, bend: BendMap):
+        from sdexp.sim.simulator import _plain
+        self.drone, self.bend = drone, bend
+        plain = _plain(sim_cfg)
+        self.sim_cfg = replace(plain, effects=[])
+        self.noise, delay = prediction_model(noise_cfg)
+        # the nominal model: the configured effects (a previous fit, say) and the output delay
+        self.base = delay + list(plain.effects or [])
+        self.ang = angle_columns(channel_names(drone.dim, drone.layout.n_s))
+        self.rollouts = 0
+
+    def residual(self, w: Windows, effects) -> np.ndarray:
+        """measured - predicted (W, horizon, C) with ``effects`` (entries) in the simulator."""
+        from sdexp.sim.simulator import Simulator
+        sim = Simulator(self.drone, self.sim_cfg, self.noise, seed=0, effects=self.base + list(effects))
+        out = np.empty_like(w.measured)
+        k = 0
+        for f, s in zip(w.flights, w.starts):
+            if len(s) == 0:
+                continue
+            pred = predict_windows(sim, self.bend, f, s, w.horizon, w.history)
+            out[k:k + len(s)] = residuals(pred, f, s, w.horizon, self.ang)
+            k += len(s)
+        self.rollouts += 1
+        return out

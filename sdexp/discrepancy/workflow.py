@@ -1,0 +1,298 @@
+"""``sdexp experiment=discrepancy drone=<d> discrepancy.measured=<dir>``: localize the gap
+between the simulator and measured logs, name the missing effect, add it, show the gap shrink.
+
+1. Localize: short-horizon predictions of the nominal simulator from re-initialised measured
+   states, residuals per channel and regime against the noise floor of nominal simulated
+   flights (localize.csv, localize.png).
+2. Name: fit every candidate effect on training flights, test on held-out flights (fit.py);
+   ``none``, an effect, a tie, or ``unexplained`` with the channel and regime that stay above
+   the floor. Up to ``max_effects`` effects are added one after another.
+3. Add: sim_fitted.yaml, the simulator config with the fitted effects (a drop-in for
+   conf/sim/<name>.yaml).
+4. Show: held-out per-channel error before and after (gap.csv) and overlays (overlay.png).
+report.json holds the verdict, parameters with uncertainty, the ranking and the gap.
+"""
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import OmegaConf
+
+from sdexp.cache import atomic_write, cached_arrays, key_of
+from sdexp.discrepancy.candidates import library_candidates
+from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
+from sdexp.discrepancy.localize import heatmap, localize, noise_floor, unexplained_cell
+from sdexp.discrepancy.logs import read_logs
+from sdexp.discrepancy.predict import calibrate_bend_map
+from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
+from sdexp.errors import UserError
+
+FLOOR_FORMAT = 1
+
+
+def _plain(x):
+    return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else (
+        asdict(x) if hasattr(x, "__dataclass_fields__") else x)
+
+
+def steps_of(dcfg, dt: float) -> tuple[int, int, int]:
+    return (max(1, int(round(dcfg.horizon / dt))), max(1, int(round(dcfg.stride / dt))),
+            int(round(dcfg.history / dt)))
+
+
+def model_key(drone_cfg, sim_cfg, noise_cfg) -> dict:
+    return {"drone": _plain(drone_cfg), "sim": _plain(sim_cfg), "noise": _plain(noise_cfg)}
+
+
+def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: str, seed: int = 777_000):
+    """Residuals of the nominal simulator on ``floor_flights`` nominal simulated flights (the
+    record manoeuvres, the configured noise), cached. Returns (r_floor, Windows-like)."""
+    from sdexp.discrepancy.record import record_flights
+    from sdexp.discrepancy.logs import channel_names
+
+    dt = float(_plain(sim_cfg)["control_dt"])
+    h, stride, hist = steps_of(dcfg, dt)
+    rec = _plain(dcfg.record)
+    payload = {**model_key(drone_cfg, sim_cfg, noise_cfg), "record": rec, "h": h, "stride": stride,
+               "hist": hist, "flights": int(dcfg.floor_flights), "seed": seed}
+
+    def make():
+        with tempfile.TemporaryDirectory() as tmp:
+            record_flights(drone, sim_cfg, noise_cfg, Path(tmp), int(dcfg.floor_flights), rec["seconds"],
+                           rec["manoeuvres"], seed, rec["height"], rec["ground"], rec["amplitude"])
+            logs = read_logs(tmp, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
+        w = make_windows(logs.flights, logs.channels, h, stride, hist)
+        r = Predictor(drone, sim_cfg, noise_cfg, bend).residual(w, [])
+        return {"r": r, "start_rows": w.start_rows, "start_u": w.start_u}
+
+    a = cached_arrays(cache_dir, key_of("discrepancy-floor", FLOOR_FORMAT, payload), make)
+    channels = channel_names(drone.dim, drone.layout.n_s)
+    w = Windows([], [], h, hist, channels, np.zeros((len(a["r"]), h, len(channels))), a["start_rows"],
+                a["start_u"], np.zeros(len(a["r"]), int))
+    return a["r"], w
+
+
+def prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir: str):
+    """The model knowledge the workflow needs before it sees logs: bend map and noise floor."""
+    bend = calibrate_bend_map(drone, sim_cfg, cache_dir, model_key(drone_cfg, sim_cfg, noise_cfg))
+    r_floor, w_floor = floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir)
+    return bend, r_floor, w_floor
+
+
+def split_flights(n: int, holdout: float) -> tuple[list[int], list[int]]:
+    """Every k-th flight held out (at least one, at least one left to train on)."""
+    n_held = min(max(1, int(round(holdout * n))), n - 1)
+    held = sorted(set(np.linspace(n - 1, 0, n_held).round().astype(int).tolist()))
+    return [i for i in range(n) if i not in held], held
+
+
+def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: Path, cache_dir: str,
+                 seed: int = 0, plots: bool = True, log=print) -> dict:
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
+    dt = float(_plain(sim_cfg)["control_dt"])
+    if abs(logs.dt - dt) > 1e-9:
+        raise UserError(f"{logs.folder / 'meta.json'}: sample_rate = {logs.meta['sample_rate']} Hz but the "
+                        f"simulator runs at 1/sim.control_dt = {1 / dt:g} Hz")
+    if len(logs.flights) < 2:
+        raise UserError(f"{logs.folder}: {len(logs.flights)} flight(s); at least 2 are needed to hold one out")
+    h, stride, hist = steps_of(dcfg, dt)
+    w_all = make_windows(logs.flights, logs.channels, h, stride, hist)
+    too_short = [f.name for f, s in zip(logs.flights, w_all.starts) if len(s) == 0]
+    if too_short:
+        raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history + horizon "
+                        f"({(hist + h + 1) * dt:g} s)")
+    bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
+    sigma = noise_floor(r_floor)
+    floor_w = window_loss(r_floor, sigma)
+    train_ids, held_ids = split_flights(len(logs.flights), dcfg.holdout)
+    train_all, held = subset(w_all, train_ids), subset(w_all, held_ids)
+    # the fits estimate a few parameters each: a thinned training set does, and every rollout
+    # of a candidate costs in proportion to it
+    train = thin(train_all, int(dcfg.fit_windows))
+    pred = Predictor(drone, sim_cfg, noise_cfg, bend)
+    rng = np.random.default_rng(seed)
+
+    # 1. localize
+    r_train_all, r_held = pred.residual(train_all, []), pred.residual(held, [])
+    r_train = pred.residual(train, []) if train is not train_all else r_train_all
+    r_all = np.concatenate([r_train_all, r_held])
+    w_order = subset(w_all, train_ids + held_ids)
+    table = localize(r_all, w_order, r_floor, w_floor, sigma, drone.dim, drone.layout.n_s)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write(out_dir / "localize.csv", lambda tmp: table.to_csv(tmp, index=False))
+    if plots:
+        heatmap(table, out_dir / "localize.png", f"{drone.name}: nominal simulator vs logs")
+    def table_on(r, w):
+        return localize(r, w, r_floor, w_floor, sigma, drone.dim, drone.layout.n_s)
+
+    hot = unexplained_cell(table, table_on(r_train_all, train_all), table_on(r_held, held),
+                           dcfg.unexplained_ratio, dcfg.alpha)
+
+    # 2. name, one effect at a time
+    cands = library_candidates(drone, list(dcfg.candidates) or None)
+    base, accepted, rounds = [], [], []
+    held_nom_w = window_loss(r_held, sigma)
+    cur_train, cur_held, cur_held_w = r_train, r_held, held_nom_w
+    verdict, ties = "none", []
+    for rnd in range(int(dcfg.max_effects)):
+        remaining = [c for c in cands if c.name not in {f.name for f in accepted}]
+        fits = [linear_fit(c, pred, train, sigma, cur_train, base, rng) for c in remaining]
+        L_train = float(np.mean((cur_train / sigma) ** 2))
+        # screening by the linear model's training loss; a candidate whose rollout does not
+        # beat the nominal training loss (its linearisation was optimistic: stiffness changes
+        # set off bending oscillations a finite difference misjudges) gives its place to the
+        # next one, up to two extra
+        order = [i for i in sorted(range(len(fits)), key=lambda i: fits[i].train_loss_linear)
+                 if fits[i].train_loss_linear < L_train]
+        good, tried = 0, 0
+        for i in order:
+            if good >= int(dcfg.screen) or tried >= int(dcfg.screen) + 2:
+                break
+            refine(fits[i], remaining[i], pred, train, held, sigma, base)
+            tried += 1
+            good += fits[i].train_loss < L_train
+        v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+        rounds.append({"round": rnd + 1, "verdict": v, "ranking": _jsonable(ranking), "z_threshold": float(z),
+                       "held_loss_nominal": float(np.mean(cur_held_w))})
+        log(f"discrepancy round {rnd + 1}: {v} {best.name if best else ''} "
+            f"{[t.name for t in tie]} held loss {np.mean(cur_held_w):.3f} -> "
+            f"{best.held_loss if best else float('nan'):.3f}")
+        if best is None:
+            break
+        polish(best, next(c for c in remaining if c.name == best.name), pred, train, held, sigma, base, iters=1)
+        accepted.append(best)
+        if rnd == 0:
+            verdict, ties = v, [t.name for t in tie]
+        base = base + best.effects
+        cur_held = best.evidence["held_residual"]
+        cur_held_w = best.held_w
+        cur_train = pred.residual(train, base)
+        # stop when what is left is at the noise floor
+        if trimmed(cur_held_w) < dcfg.unexplained_ratio * trimmed(floor_w):
+            break
+    # the gap: excess of the held-out loss over the noise floor's, as trimmed means (the top
+    # 10% of windows dropped): a few windows of the floor flights with large errors would
+    # otherwise move the floor by more than a moderate effect's whole gap
+    L_before, L_after, floor_L = trimmed(held_nom_w), trimmed(cur_held_w), trimmed(floor_w)
+    remaining_cell = None
+    if accepted:
+        t_held = table_on(cur_held, held)
+        remaining_cell = unexplained_cell(t_held, table_on(cur_train, train), t_held, dcfg.unexplained_ratio,
+                                          dcfg.alpha)
+    if not accepted:
+        verdict = "unexplained" if hot is not None else "none"
+
+    # 3. add
+    fitted_effects = [e for f in accepted for e in f.effects]
+    sim_fitted = dict(_plain(sim_cfg))
+    sim_fitted["effects"] = _jsonable(fitted_effects)
+    out_yaml = Path(dcfg.out) if dcfg.out else out_dir / "sim_fitted.yaml"
+    atomic_write(out_yaml, lambda tmp: tmp.write_text(
+        "# The simulator config with the effects the discrepancy workflow fitted; copy to\n"
+        "# conf/sim/<name>.yaml and run with sim=<name>.\n" + OmegaConf.to_yaml(OmegaConf.create(sim_fitted))))
+
+    # 4. show
+    gap = gap_table(r_held, cur_held, sigma, r_floor, logs.channels)
+    atomic_write(out_dir / "gap.csv", lambda tmp: gap.to_csv(tmp, index=False))
+    if plots:
+        overlay(held, r_held, cur_held, gap, out_dir / "overlay.png", dt)
+    gap_before, gap_after = L_before - floor_L, L_after - floor_L
+    report = {
+        "drone": drone.name, "measured": str(logs.folder), "flights": len(logs.flights),
+        "train_flights": [logs.flights[i].name for i in train_ids],
+        "held_out_flights": [logs.flights[i].name for i in held_ids],
+        "windows": {"train": train_all.count, "fit": train.count, "held_out": held.count, "horizon_s": h * dt},
+        "verdict": verdict,
+        "effects": [{"name": f.name, "params": f.params, "theta": f.theta.tolist(),
+                     "theta_names": next(c.params for c in cands if c.name == f.name),
+                     "theta_std": f.theta_std.tolist()} for f in accepted],
+        "ties": ties,
+        "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
+        "remaining_above_floor": _jsonable(remaining_cell),
+        "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
+                "gap_before": gap_before, "gap_after": gap_after,
+                "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},
+        "rounds": rounds, "rollouts": pred.rollouts, "seconds": time.perf_counter() - t0,
+        "sim_fitted": str(out_yaml),
+    }
+    atomic_write(out_dir / "report.json", lambda tmp: tmp.write_text(json.dumps(_jsonable(report), indent=2)))
+    return report
+
+
+def trimmed(w: np.ndarray, top: float = 0.1) -> float:
+    """Mean of the window losses without the largest ``top`` fraction."""
+    w = np.sort(np.asarray(w))
+    return float(np.mean(w[:max(1, int(np.ceil(len(w) * (1 - top))))]))
+
+
+def gap_table(r_before, r_after, sigma, r_floor, channels) -> pd.DataFrame:
+    rms = lambda r: np.sqrt(np.mean(r ** 2, axis=(0, 1)))
+    b, a, f = rms(r_before), rms(r_after), rms(r_floor)
+    return pd.DataFrame({"channel": channels, "rms_before": b, "rms_after": a, "rms_floor": f,
+                         "ratio_before": b / np.maximum(f, 1e-12), "ratio_after": a / np.maximum(f, 1e-12)})
+
+
+def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float) -> None:
+    """Measured vs nominal vs fitted predictions on the held-out windows of the channels the
+    fit improved most, strung along time."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    top = np.argsort(-(gap.rms_before - gap.rms_after).to_numpy())[:4]
+    n = min(held.count, 12)
+    fig, axes = plt.subplots(len(top), 1, figsize=(9, 2.0 * len(top)), sharex=True, squeeze=False)
+    for ax, c in zip(axes[:, 0], top):
+        for w in range(n):
+            t = (w * (held.horizon + 3) + np.arange(held.horizon)) * dt
+            m = held.measured[w, :, c]
+            ax.plot(t, m, "k.", ms=2, label="measured" if w == 0 else None)
+            ax.plot(t, m - r_before[w, :, c], "C3-", lw=1, label="nominal sim" if w == 0 else None)
+            ax.plot(t, m - r_after[w, :, c], "C0-", lw=1, label="with fitted effects" if w == 0 else None)
+        ax.set_ylabel(gap.channel[c], fontsize=8)
+    axes[0, 0].legend(fontsize=7, ncol=3)
+    axes[-1, 0].set_xlabel("held-out windows, strung together (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if np.isfinite(v) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    return x
+
+
+def run(cfg, out_dir: Path) -> dict:
+    from sdexp.sim.drone import build_drone
+
+    q = cfg.discrepancy
+    if not q.measured:
+        raise UserError("discrepancy.measured is not set: give the folder of measured logs "
+                        "(sdexp experiment=record writes one)")
+    drone = build_drone(cfg.drone, cfg.cache_dir)
+    rep = run_workflow(drone, cfg.drone, cfg.sim, cfg.noise, q, q.measured, Path(out_dir), cfg.cache_dir,
+                       int(cfg.seed))
+    print(json.dumps({k: rep[k] for k in ("verdict", "effects", "ties", "unexplained", "gap")}, indent=2))
+    return {"verdict": rep["verdict"], "effects": [e["name"] for e in rep["effects"]],
+            "gap_reduction": rep["gap"]["reduction"], "held_loss_before": rep["gap"]["held_loss_before"],
+            "held_loss_after": rep["gap"]["held_loss_after"]}

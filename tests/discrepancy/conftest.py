@@ -1,0 +1,24 @@
+"""A shrunk setting of the workflow shared by its tests: the bench drone (coarse, damped leaf),
+short flights, few windows and a handful of candidates."""
+import pytest
+
+from sdexp.sim.drone import build_drone
+from tests.test_cli import make_cfg
+
+SMALL = [
+    "drone=leaf", "drone.damping=6.0", "drone.mesh.edge_length=0.5",   # the bench drone
+    "discrepancy.horizon=0.15", "discrepancy.stride=0.4", "discrepancy.history=0.2",
+    "discrepancy.fit_windows=16", "discrepancy.screen=2", "discrepancy.floor_flights=3",
+    "discrepancy.max_effects=1", "discrepancy.candidates=[payload,thrust_loss,quadratic_drag,motor_lag]",
+    "discrepancy.record.flights=4", "discrepancy.record.seconds=3.0",
+]
+
+
+@pytest.fixture(scope="session")
+def small_cfg(cache_dir):
+    return make_cfg(*SMALL, "experiment=discrepancy", f"cache_dir={cache_dir}")
+
+
+@pytest.fixture(scope="session")
+def leaf(small_cfg):
+    return build_drone(small_cfg.drone, small_cfg.cache_dir)
