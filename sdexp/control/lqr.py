@@ -20,15 +20,45 @@ class LqrFailure(RuntimeError):
     """The Riccati equation has no stabilising solution for this (A, B, Q, R)."""
 
 
+def _care_schur(A, B, Q, R) -> np.ndarray:
+    """S from the stable invariant subspace of the Hamiltonian (Laub's Schur method): 3x faster
+    than SciPy's extended-pencil QZ at 28 states (1.5 vs 4.7 ms on one core); R here is a well-
+    conditioned diagonal, which is all the pencil form protects against."""
+    n = len(A)
+    H = np.block([[A, -B @ np.linalg.solve(R, B.T)], [-Q, -A.T]])
+    _, Z, stable = scipy.linalg.schur(H, sort="lhp")
+    if stable != n:
+        raise np.linalg.LinAlgError("the Hamiltonian has eigenvalues on the imaginary axis")
+    S = np.linalg.solve(Z[:n, :n].T, Z[n:, :n].T).T
+    return 0.5 * (S + S.T)
+
+
 def _care_gain(A, B, Q, R) -> np.ndarray:
-    S = scipy.linalg.solve_continuous_are(A, B, Q, R)
+    try:
+        K = _checked_gain(A, B, Q, R, _care_schur(A, B, Q, R))
+        if K is not None:
+            return K
+    except np.linalg.LinAlgError:
+        pass
+    S = scipy.linalg.solve_continuous_are(A, B, Q, R)   # the careful solver, when the fast one fails
+    K = _checked_gain(A, B, Q, R, S)
+    if K is None:
+        raise np.linalg.LinAlgError("the Riccati solution does not solve the equation (ill-posed)")
+    return K
+
+
+def _checked_gain(A, B, Q, R, S) -> np.ndarray | None:
     K = np.linalg.solve(R, B.T @ S)
     # With a marginal mode that roundoff alone makes "controllable" (rotor normals off +y by
     # 1e-16), SciPy can return instead of failing: |S| ~ 1e15, gains up to 1e8, and a Riccati
     # residual ~ 1e9 |Q|. Such an S solves nothing; treat it as the failure it is.
     res = S @ A + A.T @ S - S @ B @ K + Q
     if not np.all(np.isfinite(K)) or np.abs(res).max() > 1e-4 * max(np.abs(Q).max(), 1e-300):
-        raise np.linalg.LinAlgError("the Riccati solution does not solve the equation (ill-posed)")
+        return None
+    # a solution of the equation is the LQR one only if it stabilises (marginal modes can give
+    # non-stabilising solutions with a small residual)
+    if np.linalg.eigvals(A - B @ K).real.max() >= 0:
+        return None
     return K
 
 
