@@ -5,8 +5,10 @@ holding its Z position.
 
 Writes ``obstacle.csv`` (the flight), ``obstacle.png`` (wing pitch, Z width, Z deviation and the
 path through the gap seen from above) and metrics: wing pitch change (deg), width reduction (%),
-max Z deviation (m), whether the drone touched an obstacle, and ``passed`` (beyond the gap with
-no contact).
+max Z deviation (m), whether the drone touched an obstacle, and ``passed``: beyond the blocks at
+the end, no contact, and inside the opening while level with them (round, over or under the
+blocks is not passing).
+The width is the mesh's Z extent: a tumbling drone narrows it too, so read it with the pitch.
 """
 from __future__ import annotations
 
@@ -59,15 +61,24 @@ def run(cfg, out_dir: Path) -> dict:
     tab["contact"] = [False] + contact[: len(tab) - 1]
     tab.to_csv(out_dir / "obstacle.csv", index=False)
     a = flight.arrays()
+    gap_start = min((float(b.min[0]) for b in boxes), default=0.0)
     gap_end = max((float(b.max[0]) for b in boxes), default=0.0)
+    half_gap = 0.5 * (_gap_width(boxes) or 0.0)
     hit = bool(np.any(tab["contact"]))
+    # through the gap: while the centre is level with the blocks it stays inside the opening
+    # (between the side blocks in Z, above the bottom one and below the sides' tops in Y);
+    # going round, over or under the blocks is not passing
+    level = (tab["x"] >= gap_start) & (tab["x"] <= gap_end)
+    y_low, y_high = _gap_heights(boxes)
+    inside = (np.abs(tab["z"]) < half_gap) & (tab["y"] > y_low) & (tab["y"] < y_high)
+    through = bool(level.any() and inside[level].all())
     pitch = np.rad2deg(a["x"][:, dyn.slices["s"]][:, wings]) if len(wings) else np.zeros((len(a["t"]), 1))
     out = {**{f"flight_{k}": v for k, v in m.items()},
            "wing_pitch_change_deg": float(pitch.min(axis=1).max() - pitch[0].min()) if len(pitch) else 0.0,
            "width_reduction_percent": 100.0 * (1.0 - min(tab["width_z"]) / rest_width),
            "max_z_deviation_m": float(np.abs(a["x"][:, dyn.slices["p"]][:, 2]).max()),
            "hit_obstacle": hit,
-           "passed": bool(not hit and a["x"][-1, dyn.slices["p"]][0] > gap_end and m["survived"])}
+           "passed": bool(not hit and through and a["x"][-1, dyn.slices["p"]][0] > gap_end and m["survived"])}
     _plot(tab, pitch, boxes, rest_width, out_dir / "obstacle.png", cfg.drone.name, out)
     return out
 
@@ -111,6 +122,13 @@ def _plot(tab, pitch, boxes, rest_width: float, path: Path, drone: str, out: dic
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _gap_heights(boxes) -> tuple[float, float]:
+    """Y range of the opening: above the blocks that span z = 0, below the tops of the others."""
+    under = [b.max[1] for b in boxes if b.min[2] < 0 < b.max[2]]
+    sides = [b.max[1] for b in boxes if not b.min[2] < 0 < b.max[2]]
+    return (max(under) if under else -np.inf), (min(sides) if sides else np.inf)
 
 
 def _gap_width(boxes) -> float | None:

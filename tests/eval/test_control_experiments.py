@@ -63,3 +63,13 @@ def test_obstacle_runs_shrunk_on_the_star(tmp_path, cache_dir):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["hit_obstacle"] is False and saved["passed"] is False   # 0.1 s: nowhere near the gap
     assert 0 <= m["width_reduction_percent"] < 100 and (tmp_path / "obstacle.png").exists()
+
+
+def test_the_obstacle_opening_is_read_from_the_boxes():
+    from sdexp.eval.obstacle import _gap_heights, _gap_width, folding_wings, touching
+    boxes = make_cfg("experiment=obstacle").sim.obstacles
+    assert _gap_width(boxes) == pytest.approx(2.8)            # narrower than the star's 3.6 m
+    assert _gap_heights(boxes) == (-2.0, 12.0)                # above the bottom block, below the tops
+    assert touching(np.array([[3.3, 0.0, 2.0]]), boxes) and not touching(np.array([[3.3, 0.0, 0.0]]), boxes)
+    r_hat = np.array([[1.0, 0, 0], [0, 0, 1.0], [-1.0, 0, 0], [0, 0, -1.0]])
+    assert list(folding_wings(r_hat)) == [1, 3]
