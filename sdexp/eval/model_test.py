@@ -28,6 +28,9 @@ dynamics? The two tests of the paper's "Testing the Linearized Networks".
     Errors over time in ``rollout.csv`` (s, e: RMS over channels in rad, e wrapped to (-pi, pi];
     p, p_dot: Euclidean norm; s_dot, e_dot: RMS), ``rollout_horizon.csv``, plot ``rollout.png``.
 
+(c) Input Jacobian. The learned B = df/du against the simulator's, from finite pushes on each
+    rotor at rest (``input_jacobian_check``): ``input_jacobian.csv``.
+
 Training curves of the networks: ``training.csv`` and ``training.png``.
 """
 from __future__ import annotations
@@ -179,6 +182,48 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     return best
 
 
+def input_jacobian_check(cfg, dyn: LearnedDynamics, steps: tuple[int, ...] = (1, 10), du: float = 1.0) -> pd.DataFrame:
+    """The learned B (df/du) against the simulator's, at rest under equal hover-sized thrusts:
+    each rotor is pushed ``du`` N above the others for k control steps in the noise-free (and
+    delay-free) simulator and the mean velocity change per N is compared, per velocity block,
+    with the learned dB/du. This is what the LQR relies on. ``rel_error`` = |B_learned -
+    B_sim| / |B_sim| (Frobenius), ``sign_agreement`` = fraction of the entries above 10% of the
+    block's largest whose signs agree. Over one step the response is local (the thrust has not
+    reached the rest of a soft body yet); over ten, rigid-like."""
+    from omegaconf import OmegaConf
+
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.simulator import Simulator
+
+    drone = build_drone(cfg.drone, cfg.cache_dir)
+    quiet = OmegaConf.merge(cfg.noise, {"enabled": False})
+    u0 = np.full(dyn.m, float(cfg.drone.mass) * float(cfg.sim.gravity) / dyn.m)
+    x0 = Simulator(drone, cfg.sim, quiet).state(noisy=False).x
+    _, _, B_learned = dyn.linearize(x0, u0)
+    alpha = float(cfg.sim.control_dt)
+
+    def mean_acceleration(u, k):
+        sim = Simulator(drone, cfg.sim, quiet)
+        for _ in range(k):
+            sim.step(u)
+        return (sim.state(noisy=False).x - x0) / (k * alpha)
+
+    rows = []
+    for k in steps:
+        base = mean_acceleration(u0, k)
+        B_sim = np.stack([mean_acceleration(u0 + du * np.eye(dyn.m)[i], k) - base for i in range(dyn.m)], 1) / du
+        for vel in ("s_dot", "e_dot", "p_dot"):
+            sl = dyn.slices[vel]
+            bs, bl = B_sim[sl], B_learned[sl]
+            if bs.size == 0:
+                continue
+            big = np.abs(bs) > 0.1 * np.abs(bs).max()
+            rows.append({"steps": k, "block": vel, "rel_error": float(np.linalg.norm(bl - bs) / np.linalg.norm(bs)),
+                         "sign_agreement": float(np.mean(np.sign(bl[big]) == np.sign(bs[big]))),
+                         "norm_sim": float(np.linalg.norm(bs)), "norm_learned": float(np.linalg.norm(bl))})
+    return pd.DataFrame(rows)
+
+
 def rollout(dyn: LearnedDynamics, x0: np.ndarray, U: np.ndarray, every: int, linear: bool = True,
             X_true: np.ndarray | None = None, restart: int | None = None):
     """Predicted states (T+1, n) from x0 under commands U (T, m). linear: Eq. 5 relinearised
@@ -302,6 +347,14 @@ def run(cfg, out_dir: Path) -> dict:
     metrics["r2_mean"] = float(table["r2"].mean())
     metrics["r2_no_change_mean"] = float(table["r2_no_change"].mean())
     print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+
+    # (c) the learned input Jacobian against the simulator's (what the LQR relies on)
+    jac = input_jacobian_check(cfg, dyn)
+    jac.to_csv(out_dir / "input_jacobian.csv", index=False)
+    for r in jac.itertuples():
+        metrics[f"input_jacobian_{r.block}_{r.steps}step_rel_error"] = r.rel_error
+        metrics[f"input_jacobian_{r.block}_{r.steps}step_sign_agreement"] = r.sign_agreement
+    print(jac.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
     # (b) rollout of the linearized model against a test flight
     seconds = float(p.get("rollout_seconds", 70.0))

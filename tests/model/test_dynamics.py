@@ -191,11 +191,14 @@ def test_model_test_runs_shrunk(tmp_path, cache_dir):
     metrics = _run_or_skip(tmp_path, cache_dir, "experiment=model_test", "experiment.params.rollout_seconds=1.5",
                            "experiment.params.horizon_seconds=0.2", "experiment.params.plot_seconds=0.5")
     for f in ("training.csv", "training.png", "acceleration_r2.csv", "acceleration.png", "rollout.csv",
-              "rollout_horizon.csv", "rollout.png", "metrics.json"):
+              "rollout_horizon.csv", "rollout.png", "input_jacobian.csv", "metrics.json"):
         assert (tmp_path / f).exists(), f
     assert metrics["flight_source"].startswith("simulated")   # episodes are 1 s, the flight 1.5 s
     assert metrics["flight_seconds"] > 0.5 and metrics["jacobians_ms_mean"] > 0
     assert np.isfinite(metrics["r2_mean"]) and "rollout_linearized_p_err_1s" in metrics
+    for k in (1, 10):   # the rod's learned B against the simulator's, per velocity block
+        assert 0 <= metrics[f"input_jacobian_p_dot_{k}step_sign_agreement"] <= 1
+        assert np.isfinite(metrics[f"input_jacobian_s_dot_{k}step_rel_error"])
 
 
 def test_ablation_decomposition_runs_shrunk(tmp_path, cache_dir):
