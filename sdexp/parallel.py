@@ -18,9 +18,21 @@ ONE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NU
 _REPORT = None
 
 
-def _init(q) -> None:
+def _init(q, parent: int) -> None:
     global _REPORT
     _REPORT = q.put
+    import threading
+    threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
+
+
+def _exit_with(parent: int, every: float = 1.0) -> None:
+    """End this worker when the process that started it is gone (killed runs otherwise leave
+    their workers simulating to the end of their task); its outputs are written atomically, so
+    nothing half-written stays behind."""
+    import time
+    while os.getppid() == parent:
+        time.sleep(every)
+    os._exit(1)
 
 
 def _call(fn, args):
@@ -40,7 +52,7 @@ def run_spawned(fn: Callable, tasks: Sequence[tuple], workers: int, progress: Ca
     saved = {k: os.environ.get(k) for k in ONE_THREAD_ENV}
     os.environ.update(ONE_THREAD_ENV)
     try:
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q,)) as pool:
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q, os.getpid())) as pool:
             futures = [pool.submit(_call, fn, task) for task in tasks]  # children start here
             _restore(saved)
             try:
