@@ -3,8 +3,6 @@ bar, the per-flight CSV, and the position-over-time figure of the paper's SOTA c
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
-
 import numpy as np
 import pandas as pd
 
@@ -25,8 +23,9 @@ class Setup:
         self.drone = build_drone(cfg.drone, cfg.cache_dir)
         self.progress = progress
 
-    def simulator(self, seed_offset: int = 0) -> Simulator:
-        return Simulator(self.drone, self.cfg.sim, self.cfg.noise, seed=int(self.cfg.seed) + seed_offset)
+    def simulator(self) -> Simulator:
+        """Every flight of an experiment sees the same noise stream (seed = cfg.seed)."""
+        return Simulator(self.drone, self.cfg.sim, self.cfg.noise, seed=int(self.cfg.seed))
 
     def controller(self, name: str, sim: Simulator):
         from sdexp.eval import controllers
@@ -72,15 +71,14 @@ def flight_table(flight: Flight, dyn) -> pd.DataFrame:
     return pd.DataFrame(cols)
 
 
-def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path: Path, suptitle: str,
-                  ylim: Sequence[float] | None = None) -> None:
+def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path: Path, suptitle: str) -> None:
     """The paper's SOTA figure: (x, y, z) over time, one panel per flight, goal dashed."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = len(tables)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False, sharey=ylim is not None)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False)
     for ax, (name, tab) in zip(axes[0], tables.items()):
         for axis, color in zip(("x", "y", "z"), ("tab:red", "tab:green", "tab:blue")):
             if axis in tab:
@@ -89,8 +87,6 @@ def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path:
         ax.set_title(titles.get(name, name), fontsize=9)
         ax.set_xlabel("t (s)")
         ax.grid(alpha=0.3)
-        if ylim is not None:
-            ax.set_ylim(*ylim)
     axes[0, 0].set_ylabel("position (m); dashed: goal")
     axes[0, 0].legend(loc="best", fontsize=8)
     fig.suptitle(suptitle)

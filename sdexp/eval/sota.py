@@ -3,8 +3,8 @@
 LQR, neural controller -- with the same simulator, noise seed, task and thrust clip.
 
 Writes ``sota.csv`` (our metrics beside the paper's), ``trajectory_<controller>.csv``,
-``sota.png`` (the paper's figure: x, y, z over time per controller) and timings of ours
-(milliseconds per relinearisation and per control step).
+``sota.png`` (the paper's figure: x, y, z over time per controller) and ours' median
+milliseconds per relinearisation (``bench_control`` measures the rest).
 """
 from __future__ import annotations
 
