@@ -32,7 +32,8 @@ class DroneConfig:
     mass: float = 1.0                  # kg
     youngs_modulus: float = MISSING    # Pa
     poisson_ratio: float = 0.3         # the paper does not state it
-    damping: float = 1.0               # mass-proportional damping coefficient (1/s)
+    damping: float = 1.0               # mass-proportional damping of the vertex velocities (1/s)
+    deformation_damping: float = 0.0   # mass-proportional damping of the deformation velocity (1/s)
     num_rotors: int = MISSING
     num_sensors: int = MISSING         # peripheral IMUs, i.e. the length of s
     max_thrust: float = 10.0           # N per rotor; commands are clipped to [-max, max]
@@ -205,6 +206,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(d.youngs_modulus > 0, "drone.youngs_modulus", d.youngs_modulus, "> 0 Pa")
     _check(0 < d.poisson_ratio < 0.5, "drone.poisson_ratio", d.poisson_ratio, "in (0, 0.5)")
     _check(d.damping >= 0, "drone.damping", d.damping, ">= 0 1/s")
+    _check(d.deformation_damping >= 0, "drone.deformation_damping", d.deformation_damping, ">= 0 1/s")
     _check(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
     _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
     _check(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")

@@ -48,7 +48,59 @@ def rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs):
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
-def integrate(x, v, fbuf, minv, ext, fext, dt, damping, gravity, ground, boxes_min, boxes_max, friction):
+def damp_deformation(x, v, mass, minv, keep):
+    """Implicit mass-proportional damping of the deformation velocity: every free vertex keeps
+    ``keep`` of its velocity relative to the body's rigid motion (centre-of-mass velocity plus
+    the angular velocity that carries the angular momentum). Frame-indifferent, as the paper's
+    Eq. 3 needs: it removes no linear or angular momentum, so a spinning or drifting body is not
+    slowed, only its vibrations are."""
+    nv, dim = x.shape
+    M = 0.0
+    c = np.zeros(3); p = np.zeros(3); L = np.zeros(3); S = np.zeros((3, 3))
+    for i in range(nv):
+        if minv[i] == 0.0:
+            continue
+        m = mass[i]
+        M += m
+        for a in range(dim):
+            c[a] += m * x[i, a]; p[a] += m * v[i, a]
+    c /= M; p /= M
+    for i in range(nv):
+        if minv[i] == 0.0:
+            continue
+        m = mass[i]
+        r0 = x[i, 0] - c[0]; r1 = x[i, 1] - c[1]; u0 = v[i, 0] - p[0]; u1 = v[i, 1] - p[1]
+        r2 = 0.0; u2 = 0.0
+        if dim == 3:
+            r2 = x[i, 2] - c[2]; u2 = v[i, 2] - p[2]
+        L[0] += m * (r1 * u2 - r2 * u1)
+        L[1] += m * (r2 * u0 - r0 * u2)
+        L[2] += m * (r0 * u1 - r1 * u0)
+        S[0, 0] += m * r0 * r0; S[0, 1] += m * r0 * r1; S[0, 2] += m * r0 * r2
+        S[1, 1] += m * r1 * r1; S[1, 2] += m * r1 * r2; S[2, 2] += m * r2 * r2
+    S[1, 0] = S[0, 1]; S[2, 0] = S[0, 2]; S[2, 1] = S[1, 2]
+    w = np.zeros(3)
+    if dim == 3:
+        inertia = (S[0, 0] + S[1, 1] + S[2, 2]) * np.eye(3) - S
+        w = np.linalg.solve(inertia, L)
+    else:
+        w[2] = L[2] / (S[0, 0] + S[1, 1])
+    for i in range(nv):
+        if minv[i] == 0.0:
+            continue
+        r0 = x[i, 0] - c[0]; r1 = x[i, 1] - c[1]; r2 = x[i, 2] - c[2] if dim == 3 else 0.0
+        rig0 = p[0] + w[1] * r2 - w[2] * r1
+        rig1 = p[1] + w[2] * r0 - w[0] * r2
+        v[i, 0] = rig0 + keep * (v[i, 0] - rig0)
+        v[i, 1] = rig1 + keep * (v[i, 1] - rig1)
+        if dim == 3:
+            rig2 = p[2] + w[0] * r1 - w[1] * r0
+            v[i, 2] = rig2 + keep * (v[i, 2] - rig2)
+
+
+@nb.njit(fastmath=True, cache=True, error_model="numpy")
+def integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gravity, ground, boxes_min, boxes_max,
+              friction):
     """Symplectic Euler with implicit mass-proportional damping, then contact projection.
     ``fext`` (nv, dim): external forces other than thrust (effects' body hooks), held over
     the control step; zeros when no effect pushes on the body.
@@ -70,11 +122,16 @@ def integrate(x, v, fbuf, minv, ext, fext, dt, damping, gravity, ground, boxes_m
                 fz += fbuf[t, i, 2]
         mi = minv[i]
         g = gravity if mi > 0.0 else 0.0
-        vx = (v[i, 0] + dt * fx * mi) * scale
-        vy = (v[i, 1] + dt * (fy * mi - g)) * scale
-        vz = 0.0
+        v[i, 0] = (v[i, 0] + dt * fx * mi) * scale
+        v[i, 1] = (v[i, 1] + dt * (fy * mi - g)) * scale
         if dim == 3:
-            vz = (v[i, 2] + dt * fz * mi) * scale
+            v[i, 2] = (v[i, 2] + dt * fz * mi) * scale
+    if deform_damping > 0.0:
+        damp_deformation(x, v, mass, minv, 1.0 / (1.0 + dt * deform_damping))
+    for i in range(nv):
+        vx = v[i, 0]; vy = v[i, 1]; vz = 0.0
+        if dim == 3:
+            vz = v[i, 2]
         px = x[i, 0] + dt * vx; py = x[i, 1] + dt * vy; pz = 0.0
         if dim == 3:
             pz = x[i, 2] + dt * vz
@@ -126,8 +183,8 @@ def integrate(x, v, fbuf, minv, ext, fext, dt, damping, gravity, ground, boxes_m
 
 
 @nb.njit(cache=True)
-def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, damping,
-            gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
+def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, mass, damping,
+            deform_damping, gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
             weights, thrust, ext, dirs, fext):
     """Run n_sub substeps; one force buffer per thread in fbuf (nt, nv, dim). ``kernel``: the
     C-signature 3D force kernel (sdexp.sim.native).
@@ -142,7 +199,7 @@ def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, dam
             inv = elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf)
         worst = max(worst, inv)
         rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs)
-        vmax2 = max(vmax2, integrate(x, v, fbuf, minv, ext, fext, dt, damping, gravity, ground,
+        vmax2 = max(vmax2, integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gravity, ground,
                                      boxes_min, boxes_max, friction))
     return worst, vmax2
 
@@ -179,11 +236,14 @@ class Body:
         self.boxes_max = np.zeros((0, d)) if boxes_max is None else np.asarray(boxes_max, float).reshape(-1, d)
         self.friction = friction
 
-    def run(self, n_sub: int, dt: float, thrust=None, damping: float = 0.0, gravity: float = 0.0):
-        """n_sub substeps; returns (max inverted elements seen, max squared speed)."""
+    def run(self, n_sub: int, dt: float, thrust=None, damping: float = 0.0, gravity: float = 0.0,
+            deform_damping: float = 0.0):
+        """n_sub substeps; returns (max inverted elements seen, max squared speed).
+        ``damping`` (1/s) acts on the absolute vertex velocities, ``deform_damping`` on their
+        part relative to the body's rigid motion (``damp_deformation``)."""
         f = self.fem
         thrust = np.zeros(len(self.dirs)) if thrust is None else np.ascontiguousarray(thrust, dtype=float)
         return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
-                       f.Bm, f.vol, f.mu, f.lam, self.minv, damping, gravity, self.ground,
+                       f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity, self.ground,
                        self.boxes_min, self.boxes_max, self.friction, *self.rotors, thrust,
                        self.ext, self.dirs, self.fext)

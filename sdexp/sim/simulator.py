@@ -169,7 +169,8 @@ class Simulator:
         body = self.body
         x_prev, v_prev = body.x.copy(), body.v.copy()
         numba.set_num_threads(self.threads)
-        inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity)
+        inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity,
+                                   self.drone.deformation_damping)
         self.t += self.cfg.control_dt
         reason = None
         if not (np.isfinite(vmax2) and np.all(np.isfinite(body.x))):
