@@ -33,7 +33,7 @@ class DroneConfig:
     youngs_modulus: float = MISSING    # Pa
     poisson_ratio: float = 0.3         # the paper does not state it
     damping: float = 1.0               # mass-proportional damping of the vertex velocities (1/s)
-    deformation_damping: float = 0.0   # mass-proportional damping of the deformation velocity (1/s)
+    deformation_damping: float = 20.0  # mass-proportional damping of the deformation velocity (1/s)
     num_rotors: int = MISSING
     num_sensors: int = MISSING         # peripheral IMUs, i.e. the length of s
     max_thrust: float = 10.0           # N per rotor; commands are clipped to [-max, max]
@@ -81,6 +81,7 @@ class DataConfig:
     samples: int = 150_000          # transitions (one per 10 ms control step)
     hold_seconds: float = 1.0       # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
     thrust_range: List[float] = field(default_factory=lambda: [-1.0, 1.0])  # U[lo, hi] x Tmax (paper: [-1, 1])
+    around_hover: bool = False      # true: each hold draws hover thrust + U[lo, hi] x Tmax (paper: false)
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
     region: float = 30.0            # m from the start beyond which an episode restarts
     workers: int = 2                # simulation processes
@@ -99,6 +100,7 @@ class ModelConfig:
     lr_step: int = 20
     loss: str = "l1"                # l1 | l2
     keep_best: bool = True          # return the epoch of lowest validation loss (false: the last, as the paper)
+    horizon: int = 1                # predict the velocity this many frames ahead (paper: 1); alpha = horizon x dt
     threads: int = 2                # torch threads: >= 2 trains d, g, h side by side, one thread each
 
 

@@ -5,7 +5,7 @@ Policy: u = Tmax tanh(MLP(features)), features = (s, s_dot, wrap(e), e_dot, p - 
 so it is translation-invariant like the learned h (which does not see p).
 Training: batches of initial states, half the rest state (the task's release condition) and half
 states drawn from the training data, each with a goal offset drawn uniformly in a ball of radius
-``goal_radius``; rolled out for ``horizon`` steps through x_{k+1} = x_k + alpha f(x_k, u_k) (the
+``goal_radius``; rolled out for ``horizon`` steps through x_{k+1} = x_k + dt f(x_k, u_k) (the
 float32 learned d, g, h), loss = mean over steps of
     |p - p_goal|^2 / goal_radius^2 + w_att |e|^2 + w_bend |s|^2 + w_vel |p_dot|^2 + w_u |u / Tmax|^2,
 back-propagated through the whole rollout (gradient norm clipped), Adam. The policy is cached
@@ -106,7 +106,7 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
         loss = 0.0
         for _ in range(H):
             u = policy(x, goal)
-            x = x + d32.alpha * d32.f_torch(x, u)
+            x = x + d32.dt * d32.f_torch(x, u)
             e = torch.remainder(x[:, sl["e"]] + np.pi, 2 * np.pi) - np.pi
             loss = loss + (((x[:, sl["p"]] - goal) ** 2).sum(1) / rad ** 2
                            + cfg["w_att"] * (e ** 2).sum(1) + cfg["w_bend"] * (x[:, sl["s"]] ** 2).sum(1)

@@ -26,6 +26,7 @@ import torch
 from sdexp.control.lqr import lqr_gain
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.sim.sensors import State
+from sdexp.sim.geometry import hover_thrust, wrench_matrix
 
 
 @dataclass
@@ -41,16 +42,11 @@ class RigidGeometry:
 
     def wrench_matrix(self) -> np.ndarray:
         """[M_f; M_t]: thrusts -> body-frame force and torque."""
-        r, d = self.rotor_pos, self.rotor_dir
-        torque = np.cross(r, d) if self.dim == 3 else (r[:, 0] * d[:, 1] - r[:, 1] * d[:, 0])[:, None]
-        return np.vstack([d.T, torque.T])
+        return wrench_matrix(self.rotor_pos, self.rotor_dir)
 
     def hover_thrust(self, gravity: float) -> np.ndarray:
         """Minimum-norm u* with zero torque and a force that cancels gravity at level attitude."""
-        W = self.wrench_matrix()
-        target = np.zeros(W.shape[0])
-        target[1] = self.mass * gravity
-        return np.linalg.lstsq(W, target, rcond=None)[0]
+        return hover_thrust(self.mass, self.rotor_pos, self.rotor_dir, gravity)
 
 
 def _torch_rotation(e: torch.Tensor) -> torch.Tensor:

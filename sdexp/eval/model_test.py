@@ -56,7 +56,7 @@ def prepare(cfg, progress: bool = True):
     data = load_dataset(cfg)
     trained = train_models(data, cfg.model, int(cfg.seed), cfg.cache_dir, float(cfg.data.validation_fraction),
                            DECOMPOSED, progress)
-    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt))
+    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon))
     return data, trained, dyn
 
 

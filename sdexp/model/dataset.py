@@ -92,8 +92,10 @@ class Dataset:
 def _data_spec(data) -> dict:
     spec = {k: data[k] for k in ("samples", "hold_seconds", "episode_seconds", "region")}
     lo, hi = (float(v) for v in data.get("thrust_range", (-1.0, 1.0)))
-    if (lo, hi) != (-1.0, 1.0):   # the paper's range keeps the key it had before the option
+    if (lo, hi) != (-1.0, 1.0):   # the paper's recipe keeps the key it had before the options
         spec["thrust_range"] = [lo, hi]
+    if data.get("around_hover", False):
+        spec["around_hover"] = True
     return spec
 
 

@@ -53,8 +53,12 @@ class _one_thread:
 
 class LearnedDynamics:
     def __init__(self, nets: Mapping[str, ResidualMLP], n_s: int, n_e: int, dim: int, m: int,
-                 alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64):
+                 alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64,
+                 dt: float | None = None):
+        """``alpha``: the time between a network's input and its target (model.horizon frames);
+        ``dt``: one control interval (default alpha), the step of a simulated rollout."""
         self.n_s, self.n_e, self.dim, self.m, self.alpha = int(n_s), int(n_e), int(dim), int(m), float(alpha)
+        self.dt = self.alpha if dt is None else float(dt)
         sizes = {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim}
         self.slices: dict[str, slice] = {}
         o = 0
@@ -82,9 +86,10 @@ class LearnedDynamics:
             self.parts.append((block, net, torch.as_tensor(cols, dtype=torch.long), cols))
 
     @classmethod
-    def from_trained(cls, trained, data, alpha: float) -> "LearnedDynamics":
-        """From a :class:`~sdexp.model.training.TrainedNets` and the dataset it was trained on."""
-        return cls(trained.nets, **state_sizes(data), alpha=alpha, specs=trained.specs)
+    def from_trained(cls, trained, data, dt: float, horizon: int = 1) -> "LearnedDynamics":
+        """From a :class:`~sdexp.model.training.TrainedNets` and the dataset it was trained on;
+        ``dt`` the control interval, ``horizon`` the frames between a net's input and target."""
+        return cls(trained.nets, **state_sizes(data), alpha=dt * horizon, specs=trained.specs, dt=dt)
 
     # ------------------------------------------------------------------------------ torch
     def net_outputs(self, z: torch.Tensor) -> dict[str, torch.Tensor]:

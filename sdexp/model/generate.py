@@ -7,7 +7,9 @@ its index and its length, whichever process runs it. A chunk of length ``n`` is 
 same chunk generated longer.
 
 Every episode starts from ``Simulator.reset()`` (the undeformed drone at rest), every rotor holds
-a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw. One transition per
+a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw (the paper's
+recipe; ``data.thrust_range`` narrows the draw and ``data.around_hover`` centres it on the
+rest shape's minimum-norm hover thrust). One transition per
 control step: the state decomposed from the readings before the step, the command, and the
 rates decomposed from the readings after it. An episode ends on a failure (the failing step is
 dropped: its readings are frozen, not measured), after the step that takes p further than
@@ -29,6 +31,7 @@ from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.rotations import euler_and_rates
+from sdexp.sim.geometry import rest_hover_thrust
 from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many
@@ -104,6 +107,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     region2 = float(data["region"]) ** 2
     tmax, m = drone.max_thrust, drone.num_rotors
     lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
+    centre = rest_hover_thrust(drone, float(spec["sim"]["gravity"])) if data.get("around_hover") else 0.0
     w = widths(layout.dim, layout.n_s, m)
     out = {k: np.empty((n, v)) for k, v in w.items()}
     episode = np.empty(n, dtype=np.int32)
@@ -125,7 +129,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
         start, k = i, 0
         while True:
             if k % hold == 0:
-                u = rng.uniform(lo, hi, m)
+                u = centre + rng.uniform(lo, hi, m)
             r = sim.step(u)
             if not sim.alive:
                 ends[sim.failure.reason] += 1

@@ -56,7 +56,8 @@ from sdexp.parallel import run_spawned
 from sdexp.model.networks import ResidualMLP
 
 FORMAT_VERSION = 5   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key
-MODEL_KEYS = ("hidden", "blocks", "epochs", "batch_size", "lr", "lr_decay", "lr_step", "loss", "keep_best")
+MODEL_KEYS = ("hidden", "blocks", "epochs", "batch_size", "lr", "lr_decay", "lr_step", "loss", "keep_best",
+              "horizon")
 
 
 @dataclass(frozen=True)
@@ -93,9 +94,27 @@ def _arrays(data) -> dict[str, np.ndarray]:
     return data.arrays if hasattr(data, "arrays") else data
 
 
-def design(data, spec: NetSpec, idx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[int]]:
+def horizon_rows(data, horizon: int) -> np.ndarray:
+    """Rows i whose target ``horizon`` frames ahead exists: rows i .. i + horizon - 1 are
+    consecutive frames of one episode under one command (a constant-thrust hold)."""
+    a = _arrays(data)
+    n = len(a["u"])
+    i = np.arange(max(n - horizon + 1, 0))
+    if horizon == 1:
+        return i
+    ep, t, u = np.asarray(a["episode"]), np.asarray(a["t"], dtype=float), np.asarray(a["u"])
+    dt = np.median(np.diff(t[:min(n, 1000)])[np.diff(ep[:min(n, 1000)]) == 0]) if n > 1 else 0.0
+    ok = np.ones(len(i), bool)
+    for j in range(1, horizon):
+        ok &= (ep[i + j] == ep[i]) & np.isclose(t[i + j] - t[i], j * dt, atol=1e-6) & np.all(u[i + j] == u[i], axis=1)
+    return i[ok]
+
+
+def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1
+           ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(inputs (N, n_in), targets (N, n_out), base) for one network; base[j] is the input column
-    holding the current value of output j."""
+    holding the current value of output j. ``horizon`` k > 1: the target is the velocity k
+    frames ahead under the same command (``model.horizon``), rows without one are dropped."""
     a = _arrays(data)
     missing = [k for k in (*spec.inputs, spec.target) if k not in a]
     if missing:
@@ -111,9 +130,8 @@ def design(data, spec: NetSpec, idx: np.ndarray | None = None) -> tuple[np.ndarr
     if spec.current not in spec.inputs or cols[spec.inputs.index(spec.current)].shape[1] != Y.shape[1]:
         raise UserError(f"network {spec.name!r}: {spec.current} must be an input as wide as {spec.target}")
     base = list(range(offset, offset + Y.shape[1]))
-    if idx is not None:
-        X, Y = X[idx], Y[idx]
-    return X, Y, base
+    rows = horizon_rows(a, horizon) if idx is None else np.intersect1d(horizon_rows(a, horizon), idx)
+    return X[rows], Y[rows + horizon - 1], base
 
 
 def dataset_key(data, keys: Sequence[str]) -> str:
@@ -249,10 +267,15 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
 # ------------------------------------------------------------------------------ cache
 
 def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Sequence[NetSpec]) -> str:
-    keys = sorted({k for s in specs for k in (*s.inputs, s.target)})
+    model = {k: model_cfg[k] if hasattr(model_cfg, "__getitem__") else getattr(model_cfg, k) for k in MODEL_KEYS}
+    keys = {k for s in specs for k in (*s.inputs, s.target)}
+    if int(model["horizon"]) == 1:
+        del model["horizon"]     # the paper's one-frame targets keep the key they had before the option
+    else:
+        keys |= {"t", "u"}       # the rows design() keeps depend on them
     payload = {
-        "data": dataset_key(data, keys),
-        "model": {k: model_cfg[k] if hasattr(model_cfg, "__getitem__") else getattr(model_cfg, k) for k in MODEL_KEYS},
+        "data": dataset_key(data, sorted(keys)),
+        "model": model,
         "seed": int(seed),
         "validation_fraction": float(validation_fraction),
         "specs": [asdict(s) for s in specs],
@@ -303,11 +326,12 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
     for i, spec in enumerate(specs):
-        X_tr, Y_tr, base = design(data, spec, train_idx)
+        horizon = int(model_cfg.horizon)
+        X_tr, Y_tr, base = design(data, spec, train_idx, horizon)
         if Y_tr.shape[1] == 0:
             skipped.append(spec.name)
             continue
-        X_va, Y_va, _ = design(data, spec, val_idx)
+        X_va, Y_va, _ = design(data, spec, val_idx, horizon)
         ok_tr = np.isfinite(X_tr).all(1) & np.isfinite(Y_tr).all(1)
         ok_va = np.isfinite(X_va).all(1) & np.isfinite(Y_va).all(1)
         if not (ok_tr.all() and ok_va.all()):

@@ -41,7 +41,7 @@ class Drone:
     layout: SensorLayout
     max_thrust: float
     damping: float            # mass-proportional damping of the vertex velocities (1/s)
-    deformation_damping: float = 0.0  # ... of their part relative to the rigid motion (1/s)
+    deformation_damping: float = 0.0  # ... of their part relative to the rigid motion (1/s); config default 20
 
     @property
     def dim(self) -> int:

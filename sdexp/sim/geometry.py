@@ -11,6 +11,29 @@ import numpy as np
 from sdexp.sim.drone import RotorPatches, face_normals
 
 
+def wrench_matrix(rotor_pos: np.ndarray, rotor_dir: np.ndarray) -> np.ndarray:
+    """[M_f; M_t]: rotor thrusts -> force and torque about the origin of rotor_pos."""
+    r, d = rotor_pos, rotor_dir
+    torque = np.cross(r, d) if r.shape[1] == 3 else (r[:, 0] * d[:, 1] - r[:, 1] * d[:, 0])[:, None]
+    return np.vstack([d.T, torque.T])
+
+
+def hover_thrust(mass: float, rotor_pos: np.ndarray, rotor_dir: np.ndarray, gravity: float) -> np.ndarray:
+    """Minimum-norm thrusts with zero torque and a force that cancels gravity (along -y) at
+    level attitude."""
+    W = wrench_matrix(rotor_pos, rotor_dir)
+    target = np.zeros(W.shape[0])
+    target[1] = mass * gravity
+    return np.linalg.lstsq(W, target, rcond=None)[0]
+
+
+def rest_hover_thrust(drone, gravity: float) -> np.ndarray:
+    """hover_thrust of the drone's undeformed shape."""
+    fem = drone.fem
+    mass, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
+    return hover_thrust(mass, pos, dirs, gravity)
+
+
 def rotation_2d(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, -s], [s, c]])

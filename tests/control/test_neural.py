@@ -16,8 +16,8 @@ GAIN = 20.0
 
 class PointMass:
     """x = (e, e_dot, px, py, vx, vy), two inputs: p_ddot = GAIN u, e_ddot = -e_dot.
-    What train_policy needs of a LearnedDynamics: n, m, slices, alpha, parts, dtype, f_torch."""
-    n_s, n_e, dim, m, n, alpha = 0, 1, 2, 2, 6, 0.01
+    What train_policy needs of a LearnedDynamics: n, m, slices, dt, parts, dtype, f_torch."""
+    n_s, n_e, dim, m, n, dt = 0, 1, 2, 2, 6, 0.01
     slices = dict(s=slice(0, 0), s_dot=slice(0, 0), e=slice(0, 1), e_dot=slice(1, 2), p=slice(2, 4), p_dot=slice(4, 6))
     parts = []
     dtype = torch.float64

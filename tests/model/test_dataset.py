@@ -220,14 +220,32 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
     np.testing.assert_allclose(raw_dot, fd, rtol=1e-5, atol=1e-5)
 
 
-def test_thrust_range_narrows_the_holds_and_keys_the_cache(reference, tmp_path):
-    cfg, _ = reference
-    narrow = make_cfg(str(tmp_path), "data.samples=400", "data.thrust_range=[0.0,0.2]")
+def test_thrust_range_narrows_the_holds_and_keys_the_cache(tmp_path):
+    narrow = make_cfg(str(tmp_path), "data=paper", "data.samples=400", "data.thrust_range=[0.0,0.2]")
     u = load_dataset(narrow, CHUNK).arrays["u"]
     assert u.min() >= 0.0 and u.max() <= 2.0 + 1e-6 and u.max() > 1.0
-    paper = make_cfg(str(tmp_path), "data.thrust_range=[-1.0,1.0]")
-    assert dataset_key(dataset_spec(paper, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))   # the default
-    assert dataset_key(dataset_spec(narrow, CHUNK)) != dataset_key(dataset_spec(make_cfg(str(tmp_path), "data.samples=400"), CHUNK))
+    explicit = make_cfg(str(tmp_path), "data=paper", "data.thrust_range=[-1.0,1.0]")
+    paper = make_cfg(str(tmp_path), "data=paper")
+    assert dataset_key(dataset_spec(explicit, CHUNK)) == dataset_key(dataset_spec(paper, CHUNK))
+    assert dataset_key(dataset_spec(narrow, CHUNK)) != dataset_key(dataset_spec(make_cfg(str(tmp_path), "data=paper", "data.samples=400"), CHUNK))
+
+
+def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.geometry import rest_hover_thrust
+
+    cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]")
+    assert cfg.data.around_hover
+    u = load_dataset(cfg, CHUNK).arrays["u"]
+    hover = rest_hover_thrust(build_drone(cfg.drone, cfg.cache_dir), float(cfg.sim.gravity))
+    tmax = float(cfg.drone.max_thrust)
+    assert np.all(np.abs(u - hover) <= 0.05 * tmax + 1e-5)
+    assert np.abs(u - hover).max() > 0.03 * tmax            # the draws span the range
+    # hover thrust carries the weight: summed vertical share about m g for this level rod
+    assert hover.sum() == pytest.approx(float(cfg.drone.mass) * float(cfg.sim.gravity), rel=0.05)
+    off = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
+                   "data.around_hover=false")
+    assert dataset_key(dataset_spec(off, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
 
 def test_obstacles_are_scenery_not_part_of_the_data(reference):

@@ -206,3 +206,35 @@ def test_the_best_validation_epoch_is_kept_or_the_last():
             loss = (net.raw_output(x) - net.target_raw(x, y)).abs().mean()
         assert float(loss) == pytest.approx(chosen["val_loss"].iloc[0], rel=1e-5)
     assert training.models_key(data, plain, 0, 0.2, DECOMPOSED) != training.models_key(data, cfg, 0, 0.2, DECOMPOSED)
+
+
+def test_horizon_targets_stay_inside_one_hold_of_one_episode():
+    """model.horizon = k: the target of row i is row i + k - 1's next velocity, and only rows
+    whose k frames share the episode and the command are kept."""
+    n = 12
+    a = {"s": np.arange(n, dtype=np.float32)[:, None], "s_dot": np.zeros((n, 1), np.float32),
+         "u": np.repeat(np.array([[0.0], [1.0], [2.0]], np.float32), [5, 4, 3], axis=0),
+         "s_dot_next": 100 + np.arange(n, dtype=np.float32)[:, None],
+         "episode": np.array([0] * 7 + [1] * 5, np.int32)}
+    a["t"] = np.concatenate([0.01 * np.arange(7), 0.01 * np.arange(5)]).astype(np.float32)
+    d = DECOMPOSED[0]
+    X, Y, _ = design(a, d, horizon=3)
+    # holds: rows 0-4 (u 0), 5-8 (u 1; episode 1 starts at 7), 9-11 (u 2)
+    kept = X[:, 0].astype(int).tolist()   # input column 0 is s = the row number
+    assert kept == [0, 1, 2, 9]
+    np.testing.assert_array_equal(Y[:, 0], 100 + np.array(kept) + 2)
+    X1, Y1, _ = design(a, d, horizon=1)
+    assert len(X1) == n and np.array_equal(Y1[:, 0], a["s_dot_next"][:, 0])
+    # the split's indices are honoured: only kept rows that are in idx
+    X2, _, _ = design(a, d, idx=np.array([1, 2, 3, 10]), horizon=3)
+    assert X2[:, 0].astype(int).tolist() == [1, 2]
+
+
+def test_horizon_is_in_the_model_key_only_when_not_one():
+    data = synthetic_dataset(n=400, episode_len=100)
+    k1 = training.models_key(data, model_cfg(), 0, 0.2, DECOMPOSED)
+    k3 = training.models_key(data, model_cfg(horizon=3), 0, 0.2, DECOMPOSED)
+    assert k1 != k3
+    cfg = model_cfg()
+    legacy = {k: cfg[k] for k in training.MODEL_KEYS if k != "horizon"}
+    assert k1 == training.models_key(data, OmegaConf.create({**legacy, "horizon": 1}), 0, 0.2, DECOMPOSED)
