@@ -13,7 +13,7 @@ from sdexp.model import generate
 from sdexp.model.dataset import KEYS, DATA_FORMAT, Dataset, _write_npz, dataset_key, dataset_spec, load_dataset
 
 CHUNK = 200          # three chunks of the 600 transitions below
-SMALL = ["drone=rod", "data.samples=600", "data.hold_seconds=0.5", "data.episode_seconds=1.5",
+SMALL = ["drone=rod", "data=paper", "data.samples=600", "data.hold_seconds=0.5", "data.episode_seconds=1.5",
          "data.workers=1", "model.batch_size=64"]
 
 
