@@ -323,6 +323,18 @@ def rollout_plot(t, X_true, preds: dict, errs: dict, dyn, names, path: Path) -> 
 
 # ------------------------------------------------------------------------------ runner
 
+def speed_table(data, trained) -> pd.DataFrame:
+    """The issue's speed figures: how fast the dataset was generated (recorded when it was,
+    so a cached run still reports it) and how long each network trained."""
+    m = data.meta
+    rows = [{"item": "dataset", "samples": m.get("samples"), "workers": m.get("workers"),
+             "seconds": m.get("wall_seconds"), "samples_per_second": m.get("samples_per_second"),
+             "cached": True}]
+    rows += [{"item": f"train {n}", "samples": None, "workers": None, "seconds": float(trained.seconds[n]),
+              "epochs": len(h), "cached": bool(trained.cached)} for n, h in trained.history.items()]
+    return pd.DataFrame(rows)
+
+
 def run(cfg, out_dir: Path) -> dict:
     p = cfg.experiment.params
     alpha = float(cfg.sim.control_dt)
@@ -331,6 +343,7 @@ def run(cfg, out_dir: Path) -> dict:
     history_table(trained).to_csv(out_dir / "training.csv", index=False)
     loss_plot(trained, out_dir / "training.png", f"{cfg.drone.name}: d, g, h training")
     metrics: dict = {"nets_cached": trained.cached, "train_wall_seconds": float(trained.wall_seconds)}
+    speed_table(data, trained).to_csv(out_dir / "bench_model.csv", index=False)
     for n, h in trained.history.items():
         metrics[f"train_seconds_{n}"] = float(trained.seconds[n])
         metrics[f"val_l1_{n}"] = float(h["val_l1"][h["selected"]].iloc[0] if h["selected"].any() else h["val_l1"].iloc[-1])

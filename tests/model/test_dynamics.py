@@ -2,6 +2,7 @@
 explicit steps; and the model_test / ablation_decomposition experiments run shrunk."""
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -191,8 +192,11 @@ def test_model_test_runs_shrunk(tmp_path, cache_dir):
     metrics = _run_or_skip(tmp_path, cache_dir, "experiment=model_test", "experiment.params.rollout_seconds=1.5",
                            "experiment.params.horizon_seconds=0.2", "experiment.params.plot_seconds=0.5")
     for f in ("training.csv", "training.png", "acceleration_r2.csv", "acceleration.png", "rollout.csv",
-              "rollout_horizon.csv", "rollout.png", "input_jacobian.csv", "metrics.json"):
+              "rollout_horizon.csv", "rollout.png", "input_jacobian.csv", "bench_model.csv", "metrics.json"):
         assert (tmp_path / f).exists(), f
+    bench = pd.read_csv(tmp_path / "bench_model.csv").set_index("item")
+    assert bench.loc["dataset", "samples_per_second"] > 0 and bench.loc["dataset", "samples"] > 0
+    assert all(bench.loc[f"train {n}", "seconds"] > 0 for n in ("d", "g", "h"))
     assert metrics["flight_source"].startswith("simulated")   # episodes are 1 s, the flight 1.5 s
     assert metrics["flight_seconds"] > 0.5 and metrics["jacobians_ms_mean"] > 0
     assert np.isfinite(metrics["r2_mean"]) and "rollout_linearized_p_err_1s" in metrics
