@@ -1,5 +1,6 @@
-"""The explicit substep: elastic forces, rotor thrust, gravity, mass-proportional damping,
-symplectic Euler, contact with the ground and static boxes. ``Body`` holds the state arrays
+"""The explicit substep: elastic forces, rotor thrust, gravity, mass-proportional damping (of the
+vertex velocities and of their deformation part), symplectic Euler, contact with the ground and
+static boxes. ``Body`` holds the state arrays
 and runs whole control steps inside numba.
 """
 from __future__ import annotations
