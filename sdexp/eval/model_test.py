@@ -42,6 +42,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from sdexp.errors import UserError
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
 from sdexp.model.training import DECOMPOSED, design, history_table, loss_plot, train_models
 
@@ -248,9 +249,9 @@ def rollout(dyn: LearnedDynamics, x0: np.ndarray, U: np.ndarray, every: int, lin
                 f0, A, B = dyn.linearize(x, U[k])
                 lin_times.append(time.perf_counter() - t0)
                 xs, us = x.copy(), U[k].copy()
-            x = x + dyn.alpha * (f0 + A @ (x - xs) + B @ (U[k] - us))
+            x = x + dyn.dt * (f0 + A @ (x - xs) + B @ (U[k] - us))
         else:
-            x = dyn.step(x, U[k])
+            x = x + dyn.dt * dyn.f(x, U[k])
         if not np.all(np.isfinite(x)) or np.abs(x).max() > 1e6:
             if not restart:
                 break
@@ -336,6 +337,10 @@ def speed_table(data, trained) -> pd.DataFrame:
 
 
 def run(cfg, out_dir: Path) -> dict:
+    if int(cfg.model.horizon) != 1:
+        # (a) compares one-frame velocity changes row by row with the held-out transitions
+        raise UserError(f"model_test tests the paper's one-frame networks: model.horizon = "
+                        f"{cfg.model.horizon}; run it with model.horizon=1 (its config's default)")
     p = cfg.experiment.params
     alpha = float(cfg.sim.control_dt)
     data, trained, dyn = prepare(cfg)

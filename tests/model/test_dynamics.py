@@ -230,3 +230,10 @@ def test_hand_reverse_pass_equals_torch_autograd(base):
         np.testing.assert_allclose(y, net(zt).detach().numpy(), rtol=1e-12, atol=1e-12)
         J_ref = torch.autograd.functional.jacobian(net, zt).numpy()
         np.testing.assert_allclose(J, J_ref, rtol=1e-10, atol=1e-12)
+
+
+def test_model_test_refuses_multi_frame_networks(tmp_path, cache_dir):
+    from sdexp.errors import UserError
+
+    with pytest.raises(UserError, match="model.horizon"):
+        _run_or_skip(tmp_path, cache_dir, "experiment=model_test", "model.horizon=5")
