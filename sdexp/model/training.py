@@ -325,8 +325,8 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
             return loaded
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
+    horizon = int(model_cfg.horizon)
     for i, spec in enumerate(specs):
-        horizon = int(model_cfg.horizon)
         X_tr, Y_tr, base = design(data, spec, train_idx, horizon)
         if Y_tr.shape[1] == 0:
             skipped.append(spec.name)
