@@ -239,6 +239,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",
            (m.lr, m.lr_decay, m.lr_step), "lr > 0, lr_decay in (0, 1], lr_step >= 1")
     _check(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
+    _check(m.horizon >= 1, "model.horizon", m.horizon, ">= 1 frame")
     c = cfg.control
     for key in ("q_s", "q_e", "q_p", "r"):
         _check(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")

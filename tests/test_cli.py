@@ -64,6 +64,8 @@ def test_misspelled_key_is_an_error():
     ("drone.poisson_ratio=0.5", "drone.poisson_ratio"),
     ("drone.mass=0", "drone.mass"),
     ("sim.substep=0.5", "sim.substep"),
+    ("drone.deformation_damping=-1", "drone.deformation_damping"),
+    ("model.horizon=0", "model.horizon"),
 ])
 def test_non_physical_values_name_the_key(override, key):
     with pytest.raises(UserError, match=key.replace(".", r"\.")):
