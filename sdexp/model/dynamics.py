@@ -35,7 +35,7 @@ class _MlpJacobian:
     """A ResidualMLP's value and input Jacobian at one point, by hand in float64 NumPy: the
     forward pass keeps the ReLU masks, the reverse pass multiplies the (n_out x hidden) row block
     back through the layers. At one sample torch autograd's per-operation overhead dominates; this
-    took the flower's d, g, h Jacobians from 3.2-4.9 ms to ~1.2 ms (bench_control)."""
+    took the flower's d, g, h Jacobians from 3.2-4.9 ms to 1.2-1.7 ms (bench_control)."""
 
     def __init__(self, net: ResidualMLP):
         g = lambda t: t.detach().double().numpy().copy()
