@@ -11,9 +11,9 @@ Jacobians by reverse-mode differentiation, assembled into the block structure of
 blocks set exactly; a block whose input does not feed a network is exactly zero). The reverse
 pass is written out in NumPy (``_MlpJacobian``, tested equal to torch.autograd to 1e-10): at one
 sample torch's per-operation overhead made autograd ~4 ms of the relinearisation.
-``step(x, u) = x + alpha f(x, u)`` is one explicit Euler step: the next velocities are the
-networks' predictions, positions advance with the current velocities. Everything runs in
-float64 copies of the trained networks, and f/step take batches (..., n) / (..., m).
+A rollout steps x + dt f(x, u) with ``dt`` the control interval (``alpha`` is the networks'
+input-to-target time). Everything runs in float64 copies of the trained networks, and f takes
+batches (..., n) / (..., m).
 """
 from __future__ import annotations
 
@@ -157,11 +157,6 @@ class LearnedDynamics:
         """Eq. 4: x_dot for x (..., n) and u (..., m)."""
         with torch.no_grad(), _one_thread():
             return self.f_torch(self._as(x), self._as(u)).numpy()
-
-    def step(self, x, u) -> np.ndarray:
-        """One explicit step x + alpha f(x, u) (batched)."""
-        x = np.asarray(x, dtype=np.float64)
-        return x + self.alpha * self.f(x, u)
 
     def jacobians(self, x, u) -> tuple[np.ndarray, np.ndarray]:
         """(A, B) = (df/dx, df/du) at one (x, u), by autograd, in the block form of Eq. 6."""

@@ -102,11 +102,10 @@ def horizon_rows(data, horizon: int) -> np.ndarray:
     i = np.arange(max(n - horizon + 1, 0))
     if horizon == 1:
         return i
-    ep, t, u = np.asarray(a["episode"]), np.asarray(a["t"], dtype=float), np.asarray(a["u"])
-    dt = np.median(np.diff(t[:min(n, 1000)])[np.diff(ep[:min(n, 1000)]) == 0]) if n > 1 else 0.0
+    ep, u = np.asarray(a["episode"]), np.asarray(a["u"])
     ok = np.ones(len(i), bool)
-    for j in range(1, horizon):
-        ok &= (ep[i + j] == ep[i]) & np.isclose(t[i + j] - t[i], j * dt, atol=1e-6) & np.all(u[i + j] == u[i], axis=1)
+    for j in range(1, horizon):   # an episode's rows are consecutive frames (generate.py)
+        ok &= (ep[i + j] == ep[i]) & np.all(u[i + j] == u[i], axis=1)
     return i[ok]
 
 
@@ -272,7 +271,7 @@ def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Se
     if int(model["horizon"]) == 1:
         del model["horizon"]     # the paper's one-frame targets keep the key they had before the option
     else:
-        keys |= {"t", "u"}       # the rows design() keeps depend on them
+        keys |= {"u"}            # the rows design() keeps depend on it
     payload = {
         "data": dataset_key(data, sorted(keys)),
         "model": model,

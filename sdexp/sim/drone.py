@@ -41,7 +41,7 @@ class Drone:
     layout: SensorLayout
     max_thrust: float
     damping: float            # mass-proportional damping of the vertex velocities (1/s)
-    deformation_damping: float = 0.0  # ... of their part relative to the rigid motion (1/s); config default 20
+    deformation_damping: float  # ... of their part relative to the rigid motion (1/s)
 
     @property
     def dim(self) -> int:
@@ -170,4 +170,4 @@ def assemble_drone(cfg, shape: Shape, points: np.ndarray, elems: np.ndarray) -> 
     rotors = build_rotors(points, boundary, shape.rotors, shape.rotor_normals, cfg.rotor_radius, cfg.name)
     imus, layout = build_imu_patches(points, boundary, shape, cfg.imu_radius, cfg.name)
     return Drone(cfg.name, fem, boundary, rotors, imus, layout, float(cfg.max_thrust),
-                 float(cfg.damping), float(getattr(cfg, "deformation_damping", 0.0)))
+                 float(cfg.damping), float(cfg.deformation_damping))

@@ -77,10 +77,9 @@ def test_f_hand_case():
     x = np.array([0.1, -0.1, 1.0, 2.0, 0.5, -0.5, 3.0, 4.0, 5.0, 6.0])   # s(2) s_dot(2) e e_dot p(2) p_dot(2)
     f = dyn.f(x, np.zeros(3))
     np.testing.assert_allclose(f, [1.0, 2.0, 30.0, -20.0, -0.5, 5.0, 5.0, 6.0, 0.0, -9.81], rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(dyn.step(x, np.zeros(3)), x + ALPHA * f)
 
 
-def test_batched_f_and_step(flower_dyn):
+def test_batched_f(flower_dyn):
     dyn = flower_dyn
     rng = np.random.default_rng(2)
     X, U = rng.normal(size=(7, dyn.n)), rng.normal(size=(7, dyn.m))
@@ -88,7 +87,6 @@ def test_batched_f_and_step(flower_dyn):
     assert F.shape == (7, dyn.n)
     for i in range(7):
         np.testing.assert_allclose(F[i], dyn.f(X[i], U[i]), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(dyn.step(X, U), X + ALPHA * F)
 
 
 def test_jacobians_match_central_differences(flower_dyn):
