@@ -1,15 +1,17 @@
 """The explicit substep: elastic forces, rotor thrust, gravity, mass-proportional damping (of the
 vertex velocities and of their deformation part), symplectic Euler, contact with the ground and
-static boxes. ``Body`` holds the state arrays
-and runs whole control steps inside numba.
+static boxes. ``Body`` holds the state arrays and runs whole control steps in compiled code
+(kernels.c's ``advance``); the numba functions here are its reference and fallback.
 """
 from __future__ import annotations
+
+import ctypes
 
 import numba as nb
 import numpy as np
 
 from sdexp.sim.fem import FemModel, elastic_forces_2d, elastic_forces_3d, rest_quaternions
-from sdexp.sim.native import corotated_kernel_3d
+from sdexp.sim.native import Step, corotated_kernel_3d, library
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
@@ -210,13 +212,16 @@ _NO_ROTORS = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.
 
 
 class Body:
-    """The mutable state of one FEM body and the call that advances it.
+    """The mutable state of one FEM body and the call that advances it. The state arrays (x, v,
+    q, fext) are updated in place and must stay the same objects: the compiled step holds
+    pointers to them.
 
-    ``threads`` sets how many force buffers (and numba threads) the element loop uses; the
-    caller sets numba's thread count to match before ``run``."""
+    ``threads`` sets how many force buffers (and threads) the element loop uses; on the numba
+    path (``compiled=False``, or no C compiler) the caller sets numba's thread count to match."""
 
     def __init__(self, fem: FemModel, threads: int = 1, rotors=None, ground: float | None = None,
-                 boxes_min=None, boxes_max=None, friction: float = 0.0, pinned=None):
+                 boxes_min=None, boxes_max=None, friction: float = 0.0, pinned=None,
+                 compiled: bool = True):
         d = fem.dim
         self.fem = fem
         self.x = fem.rest.copy()
@@ -236,6 +241,25 @@ class Body:
         self.boxes_min = np.zeros((0, d)) if boxes_min is None else np.asarray(boxes_min, float).reshape(-1, d)
         self.boxes_max = np.zeros((0, d)) if boxes_max is None else np.asarray(boxes_max, float).reshape(-1, d)
         self.friction = friction
+        self.thrust = np.zeros(m)
+        self._lib = library() if compiled else None
+        self._step = self._bind() if self._lib is not None else None
+
+    def _bind(self) -> Step:
+        f, d = self.fem, self.fem.dim
+        arrays = dict(x=self.x, v=self.v, q=self.q, fbuf=self.fbuf, ext=self.ext, dirs=self.dirs,
+                      fext=self.fext, minv=self.minv, mass=f.mass, Bm=f.Bm, vol=f.vol,
+                      boxes_min=self.boxes_min, boxes_max=self.boxes_max, weights=self.rotors[4],
+                      thrust=self.thrust, el=f.elems, face_ptr=self.rotors[0], faces=self.rotors[1],
+                      vert_ptr=self.rotors[2], verts=self.rotors[3])
+        want = {"el": np.int32, "face_ptr": np.int64, "faces": np.int64, "vert_ptr": np.int64, "verts": np.int64}
+        for name, a in arrays.items():
+            if not (a.flags.c_contiguous and a.dtype == want.get(name, np.float64)):
+                raise TypeError(f"Body.{name}: needs a C-contiguous {np.dtype(want.get(name, np.float64))} array")
+        self._bound = (self.x, self.v, self.q, self.fext)
+        return Step(dim=d, nv=len(self.x), ne=f.n_elems, nt=self.fbuf.shape[0], n_rotors=len(self.dirs),
+                    n_boxes=len(self.boxes_min), mu=f.mu, lam=f.lam, ground=max(self.ground, -1e300),
+                    friction=self.friction, **{k: a.ctypes.data for k, a in arrays.items()})
 
     def run(self, n_sub: int, dt: float, thrust=None, damping: float = 0.0, gravity: float = 0.0,
             deform_damping: float = 0.0):
@@ -243,8 +267,18 @@ class Body:
         ``damping`` (1/s) acts on the absolute vertex velocities, ``deform_damping`` on their
         part relative to the body's rigid motion (``damp_deformation``)."""
         f = self.fem
-        thrust = np.zeros(len(self.dirs)) if thrust is None else np.ascontiguousarray(thrust, dtype=float)
-        return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
-                       f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity, self.ground,
-                       self.boxes_min, self.boxes_max, self.friction, *self.rotors, thrust,
-                       self.ext, self.dirs, self.fext)
+        self.thrust[:] = 0.0 if thrust is None else thrust
+        if self._step is None:
+            return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
+                           f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity,
+                           self.ground, self.boxes_min, self.boxes_max, self.friction, *self.rotors,
+                           self.thrust, self.ext, self.dirs, self.fext)
+        if any(a is not b for a, b in zip(self._bound, (self.x, self.v, self.q, self.fext))):
+            raise RuntimeError("Body state arrays were replaced: assign into them (x[:] = ...)")
+        s = self._step
+        s.n_sub, s.dt, s.damping, s.deform_damping, s.gravity = n_sub, dt, damping, deform_damping, gravity
+        vmax2 = ctypes.c_double()
+        worst = self._lib.advance(ctypes.byref(s), ctypes.byref(vmax2))
+        if worst < 0:
+            raise MemoryError("kernels.c advance: out of memory")
+        return worst, vmax2.value

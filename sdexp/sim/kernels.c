@@ -1,13 +1,20 @@
-/* Co-rotated linear tet forces, the hot loop of sdexp's simulator (see fem.py for the math;
- * fem.corotated_range_3d is the same computation in numba, the reference and fallback).
+/* The hot loops of sdexp's simulator: co-rotated linear element forces (see fem.py for the
+ * math; fem.corotated_range_3d/_2d are the same computation in numba) and whole control steps
+ * of substeps (advance; integrator.advance is its numba reference and fallback).
  *
  * Elements are processed in blocks of B: a scalar gather of F = Ds Dm^-1 into structure-of-
  * arrays buffers, one branch-free loop the compiler turns into SIMD, a scalar scatter. This
  * layout is what lets gcc vectorise it; numba's LLVM keeps the same arithmetic scalar.
  * Threads are OpenMP's: a region costs a microsecond or two, a numba parallel region ten. */
 #include <math.h>
+#include <stdlib.h>
 #include <stdint.h>
 #include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#else
+static int omp_get_thread_num(void) { return 0; }
+#endif
 #define B 32  /* elements per SIMD block */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
 /* Adds the nodal forces of elements [e0, e1) into f (nv, 3) and updates their warm-start
@@ -106,4 +113,272 @@ int corotated_forces_3d(const double *x, const int32_t *el, const double *Bm, co
             inverted += forces_range(x, el, Bm, vol, mu, lam, q, f, e0, e1);
     }
     return inverted;
+}
+
+/* Triangle forces of elements [e0, e1) into f (nv, 2), plane strain (fem.corotated_range_2d). */
+static int forces_range_2d(const double *restrict x, const int32_t *restrict el, const double *restrict Bm,
+        const double *restrict vol, double mu, double lam, double *restrict f, int64_t e0, int64_t e1)
+{
+    int inverted = 0;
+    for (int64_t e = e0; e < e1; e++) {
+        const int32_t *t = el + 3 * e;
+        const double *b = Bm + 4 * e;
+        double d1x = x[2 * t[1]] - x[2 * t[0]], d1y = x[2 * t[1] + 1] - x[2 * t[0] + 1];
+        double d2x = x[2 * t[2]] - x[2 * t[0]], d2y = x[2 * t[2] + 1] - x[2 * t[0] + 1];
+        double b00 = b[0], b01 = b[1], b10 = b[2], b11 = b[3];
+        double f00 = d1x * b00 + d2x * b10, f01 = d1x * b01 + d2x * b11;
+        double f10 = d1y * b00 + d2y * b10, f11 = d1y * b01 + d2y * b11;
+        inverted += f00 * f11 - f01 * f10 <= 0.0;
+        double c = f00 + f11, s = f10 - f01;   /* the exact polar rotation of a 2x2 F */
+        double inv_n = 1.0 / sqrt(c * c + s * s + 1e-300);
+        c *= inv_n; s *= inv_n;
+        double s00 = c * f00 + s * f10, s11 = -s * f01 + c * f11;
+        double s01 = 0.5 * ((c * f01 + s * f11) + (-s * f00 + c * f10));
+        double e00 = s00 - 1.0, e11 = s11 - 1.0, tr = lam * (e00 + e11);
+        double t00 = 2.0 * mu * e00 + tr, t11 = 2.0 * mu * e11 + tr, t01 = 2.0 * mu * s01, V = -vol[e];
+        double p00 = V * (c * t00 - s * t01), p01 = V * (c * t01 - s * t11);
+        double p10 = V * (s * t00 + c * t01), p11 = V * (s * t01 + c * t11);
+        double h00 = p00 * b00 + p01 * b01, h10 = p10 * b00 + p11 * b01;
+        double h01 = p00 * b10 + p01 * b11, h11 = p10 * b10 + p11 * b11;
+        f[2 * t[1]] += h00; f[2 * t[1] + 1] += h10;
+        f[2 * t[2]] += h01; f[2 * t[2] + 1] += h11;
+        f[2 * t[0]] -= h00 + h01; f[2 * t[0] + 1] -= h10 + h11;
+    }
+    return inverted;
+}
+
+/* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
+ * (rows: vertices or elements), dim = 2 or 3 columns. */
+typedef struct {
+    int64_t dim, nv, ne, nt, n_sub, n_rotors, n_boxes;
+    double dt, mu, lam, damping, deform_damping, gravity, ground, friction;
+    double *x, *v, *q, *fbuf, *ext, *dirs;
+    const double *fext, *minv, *mass, *Bm, *vol, *boxes_min, *boxes_max, *weights, *thrust;
+    const int32_t *el;
+    const int64_t *face_ptr, *faces, *vert_ptr, *verts;
+} Step;
+
+/* integrator.rotor_forces: thrust along each patch's area-weighted normal. */
+static void rotor_forces(const Step *s)
+{
+    const int64_t d = s->dim;
+    const double *x = s->x;
+    for (int64_t r = 0; r < s->n_rotors; r++)
+        for (int64_t k = s->vert_ptr[r]; k < s->vert_ptr[r + 1]; k++)
+            for (int64_t c = 0; c < d; c++) s->ext[d * s->verts[k] + c] = 0.0;
+    for (int64_t r = 0; r < s->n_rotors; r++) {
+        double n[3] = {0.0, 0.0, 0.0};
+        for (int64_t k = s->face_ptr[r]; k < s->face_ptr[r + 1]; k++) {
+            const int64_t *fc = s->faces + 3 * k;
+            const double *a = x + d * fc[0], *b = x + d * fc[1];
+            if (d == 3) {
+                const double *c = x + 3 * fc[2];
+                double u[3] = {b[0] - a[0], b[1] - a[1], b[2] - a[2]}, w[3] = {c[0] - a[0], c[1] - a[1], c[2] - a[2]};
+                n[0] += u[1] * w[2] - u[2] * w[1]; n[1] += u[2] * w[0] - u[0] * w[2]; n[2] += u[0] * w[1] - u[1] * w[0];
+            } else {  /* outward normal of a counter-clockwise boundary segment a->b */
+                n[0] += b[1] - a[1]; n[1] -= b[0] - a[0];
+            }
+        }
+        double inv = 1.0 / sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2] + 1e-300);
+        for (int64_t c = 0; c < d; c++) s->dirs[d * r + c] = n[c] * inv;
+        for (int64_t k = s->vert_ptr[r]; k < s->vert_ptr[r + 1]; k++)
+            for (int64_t c = 0; c < d; c++)
+                s->ext[d * s->verts[k] + c] += s->thrust[r] * s->weights[k] * n[c] * inv;
+    }
+}
+
+/* The sums behind the deformation damping, over free vertices, relative to a reference point
+ * (positions far from the origin would otherwise cancel): M, sum m r, sum m v, sum m r x v,
+ * sum m r r^T (6: xx xy xz yy yz zz). */
+enum { S_M, S_R, S_P = 4, S_L = 7, S_S = 10, S_LEN = 16, S_STRIDE = 24 };
+
+/* The velocity of the rigid motion that carries the body's momenta, from the summed sums:
+ * centre of mass c (relative to the reference), its velocity p, the angular velocity w. */
+static void rigid_motion(const double *sum, int64_t dim, double c[3], double p[3], double w[3])
+{
+    double M = sum[S_M];
+    for (int a = 0; a < 3; a++) { c[a] = sum[S_R + a] / M; p[a] = sum[S_P + a] / M; w[a] = 0.0; }
+    /* about the centre of mass: L = sum m r x v - M c x p, S = sum m r r^T - M c c^T */
+    double L[3] = {sum[S_L] - M * (c[1] * p[2] - c[2] * p[1]), sum[S_L + 1] - M * (c[2] * p[0] - c[0] * p[2]),
+                   sum[S_L + 2] - M * (c[0] * p[1] - c[1] * p[0])};
+    double sxx = sum[S_S] - M * c[0] * c[0], sxy = sum[S_S + 1] - M * c[0] * c[1], sxz = sum[S_S + 2] - M * c[0] * c[2];
+    double syy = sum[S_S + 3] - M * c[1] * c[1], syz = sum[S_S + 4] - M * c[1] * c[2], szz = sum[S_S + 5] - M * c[2] * c[2];
+    if (dim == 2) { w[2] = L[2] / (sxx + syy); return; }
+    /* inertia I = tr(S) 1 - S, symmetric; w = I^-1 L by the adjugate */
+    double a = syy + szz, b = -sxy, cc = -sxz, d = sxx + szz, e = -syz, f = sxx + syy;
+    double A00 = d * f - e * e, A01 = cc * e - b * f, A02 = b * e - cc * d;
+    double A11 = a * f - cc * cc, A12 = b * cc - a * e, A22 = a * d - b * b;
+    double inv = 1.0 / (a * A00 + b * A01 + cc * A02);
+    w[0] = inv * (A00 * L[0] + A01 * L[1] + A02 * L[2]);
+    w[1] = inv * (A01 * L[0] + A11 * L[1] + A12 * L[2]);
+    w[2] = inv * (A02 * L[0] + A12 * L[1] + A22 * L[2]);
+}
+
+/* Contact of one vertex (position p, velocity u) with the ground and the static boxes: project
+ * out along the normal, cancel the inward normal velocity, take Coulomb friction off the
+ * tangential velocity (integrator.integrate). */
+static inline __attribute__((always_inline)) void contact(const Step *restrict s, const int d,
+        double *restrict p, double *restrict u)
+{
+    if (p[1] < s->ground) {
+        p[1] = s->ground;
+        if (u[1] < 0.0) {
+            double vt = sqrt(u[0] * u[0] + u[2] * u[2]);
+            double keep = fmax(0.0, 1.0 - s->friction * (-u[1]) / (vt + 1e-12));
+            u[0] *= keep; u[2] *= keep; u[1] = 0.0;
+        }
+    }
+    for (int64_t b = 0; b < s->n_boxes; b++) {
+        const double *lo = s->boxes_min + d * b, *hi = s->boxes_max + d * b;
+        int inside = 1;
+        for (int c = 0; c < d; c++) inside &= p[c] > lo[c] && p[c] < hi[c];
+        if (!inside) continue;
+        double best = 1e300, side = 0.0;
+        int axis = 0;
+        for (int c = 0; c < d; c++) {
+            if (p[c] - lo[c] < best) { best = p[c] - lo[c]; axis = c; side = -1.0; }
+            if (hi[c] - p[c] < best) { best = hi[c] - p[c]; axis = c; side = 1.0; }
+        }
+        double vn = u[axis];
+        p[axis] += side * best;
+        if (vn * side < 0.0) {
+            double t2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2] - vn * vn;
+            double keep = fmax(0.0, 1.0 - s->friction * fabs(vn) / (sqrt(fmax(t2, 0.0)) + 1e-12));
+            u[0] *= keep; u[1] *= keep; u[2] *= keep;
+            u[axis] = 0.0;
+        }
+    }
+}
+
+/* Velocity update of vertices [v0, v1): all forces, gravity, damping of the absolute velocity;
+ * adds their deformation-damping sums (relative to ref) into my. d is a literal at each call,
+ * so the compiler drops the z arithmetic in 2D. */
+static inline __attribute__((always_inline)) void kick(const Step *restrict s, const int d,
+        int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
+{
+    const int64_t nv = s->nv, nt = s->nt;
+    const double dt = s->dt, grav = s->gravity;
+    const double *restrict ext = s->ext, *restrict fext = s->fext, *restrict fb = s->fbuf;
+    const double *restrict minv = s->minv, *restrict mass = s->mass, *restrict x = s->x;
+    double *restrict v = s->v;
+    const int sums = s->deform_damping > 0.0;
+    double M = 0, rx = 0, ry = 0, rz = 0, px = 0, py = 0, pz = 0, lx = 0, ly = 0, lz = 0;
+    double sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+    for (int64_t i = v0; i < v1; i++) {
+        double fx = ext[d * i] + fext[d * i], fy = ext[d * i + 1] + fext[d * i + 1], fz = 0.0;
+        if (d == 3) fz = ext[d * i + 2] + fext[d * i + 2];
+        for (int64_t k = 0; k < nt; k++) {
+            const double *g = fb + d * (nv * k + i);
+            fx += g[0]; fy += g[1];
+            if (d == 3) fz += g[2];
+        }
+        double mi = minv[i], g = mi > 0.0 ? grav : 0.0;
+        double ux = (v[d * i] + dt * fx * mi) * scale, uy = (v[d * i + 1] + dt * (fy * mi - g)) * scale, uz = 0.0;
+        v[d * i] = ux; v[d * i + 1] = uy;
+        if (d == 3) { uz = (v[d * i + 2] + dt * fz * mi) * scale; v[d * i + 2] = uz; }
+        if (sums && mi != 0.0) {
+            double m = mass[i], ax = x[d * i] - ref[0], ay = x[d * i + 1] - ref[1], az = 0.0;
+            if (d == 3) az = x[d * i + 2] - ref[2];
+            M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
+            lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
+            sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
+            syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+        }
+    }
+    my[S_M] = M; my[S_R] = rx; my[S_R + 1] = ry; my[S_R + 2] = rz; my[S_P] = px; my[S_P + 1] = py; my[S_P + 2] = pz;
+    my[S_L] = lx; my[S_L + 1] = ly; my[S_L + 2] = lz;
+    my[S_S] = sxx; my[S_S + 1] = sxy; my[S_S + 2] = sxz; my[S_S + 3] = syy; my[S_S + 4] = syz; my[S_S + 5] = szz;
+}
+
+/* Deformation damping (keep < 1 when damp) towards the rigid velocity p + w x (x - ref - c),
+ * position update and contact of vertices [v0, v1). Returns their largest squared speed. */
+static inline __attribute__((always_inline)) double drift(const Step *restrict s, const int d,
+        int64_t v0, int64_t v1, int damp, double keep, const double *restrict ref,
+        const double *restrict c, const double *restrict p, const double *restrict w)
+{
+    const double dt = s->dt;
+    const double *restrict minv = s->minv;
+    double *restrict x = s->x, *restrict v = s->v;
+    const int contacts = s->ground > -1e300 || s->n_boxes > 0;  /* Body passes -1e300 for none */
+    double vmax = 0.0;
+    for (int64_t i = v0; i < v1; i++) {
+        double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
+        double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
+        if (damp && minv[i] != 0.0) {
+            double ax = qx - ref[0] - c[0], ay = qy - ref[1] - c[1], az = d == 3 ? qz - ref[2] - c[2] : 0.0;
+            double gx = p[0] + w[1] * az - w[2] * ay, gy = p[1] + w[2] * ax - w[0] * az;
+            ux = gx + keep * (ux - gx); uy = gy + keep * (uy - gy);
+            if (d == 3) { double gz = p[2] + w[0] * ay - w[1] * ax; uz = gz + keep * (uz - gz); }
+        }
+        qx += dt * ux; qy += dt * uy; qz += dt * uz;
+        if (contacts) {
+            double pp[3] = {qx, qy, qz}, uu[3] = {ux, uy, uz};
+            contact(s, d, pp, uu);
+            qx = pp[0]; qy = pp[1]; qz = pp[2]; ux = uu[0]; uy = uu[1]; uz = uu[2];
+        }
+        x[d * i] = qx; x[d * i + 1] = qy; v[d * i] = ux; v[d * i + 1] = uy;
+        if (d == 3) { x[d * i + 2] = qz; v[d * i + 2] = uz; }
+        double sp = ux * ux + uy * uy + uz * uz;
+        vmax = sp > vmax ? sp : vmax;
+    }
+    return vmax;
+}
+
+/* n_sub substeps of integrator.advance in one OpenMP region: per substep, thread t adds the
+ * forces of element chunk t into fbuf[t] (thread 0 also the rotors'), then updates the
+ * velocities of vertex chunk t and its share of the damping sums, then damps and moves them.
+ * Three barriers a substep instead of a parallel region plus a serial pass.
+ * Returns the most inverted elements seen in one substep; *vmax2 gets the largest squared
+ * speed; -1 when out of memory. */
+int advance(const Step *s, double *vmax2)
+{
+    const int64_t d = s->dim, nv = s->nv, nt = s->nt;
+    double *sums = calloc((size_t)(nt * S_STRIDE), sizeof(double));
+    int *inv = calloc((size_t)nt, sizeof(int));
+    if (!sums || !inv) { free(sums); free(inv); return -1; }
+    int worst = 0;
+    double vmax = 0.0;
+    const double scale = 1.0 / (1.0 + s->dt * s->damping);
+    const double keep = 1.0 / (1.0 + s->dt * s->deform_damping);
+    #pragma omp parallel num_threads(nt) reduction(max:vmax)
+    {
+        const int64_t t = omp_get_thread_num();
+        const int64_t ec = (s->ne + nt - 1) / nt, e0 = t * ec, e1 = e0 + ec < s->ne ? e0 + ec : s->ne;
+        const int64_t vc = (nv + nt - 1) / nt, v0 = t * vc, v1 = v0 + vc < nv ? v0 + vc : nv;
+        double *f = s->fbuf + d * nv * t, *my = sums + S_STRIDE * t;
+        for (int64_t sub = 0; sub < s->n_sub; sub++) {
+            memset(f, 0, (size_t)(d * nv) * sizeof(double));
+            inv[t] = e0 >= e1 ? 0
+                   : d == 3 ? forces_range(s->x, s->el, s->Bm, s->vol, s->mu, s->lam, s->q, f, e0, e1)
+                            : forces_range_2d(s->x, s->el, s->Bm, s->vol, s->mu, s->lam, f, e0, e1);
+            if (t == 0) rotor_forces(s);
+            #pragma omp barrier
+            if (t == 0) {
+                int total = 0;
+                for (int64_t k = 0; k < nt; k++) total += inv[k];
+                worst = total > worst ? total : worst;
+            }
+            /* sums relative to a vertex, not the origin: far from it they would cancel */
+            const double ref[3] = {s->x[0], s->x[1], d == 3 ? s->x[2] : 0.0};
+            if (d == 3) kick(s, 3, v0, v1, scale, ref, my);
+            else kick(s, 2, v0, v1, scale, ref, my);
+            #pragma omp barrier
+            double c[3] = {0.0, 0.0, 0.0}, p[3] = {0.0, 0.0, 0.0}, w[3] = {0.0, 0.0, 0.0};
+            int damp = 0;
+            if (s->deform_damping > 0.0) {
+                double total[S_LEN] = {0.0};
+                for (int64_t k = 0; k < nt; k++)
+                    for (int j = 0; j < S_LEN; j++) total[j] += sums[S_STRIDE * k + j];
+                damp = total[S_M] > 0.0;
+                if (damp) rigid_motion(total, d, c, p, w);
+            }
+            double sp = d == 3 ? drift(s, 3, v0, v1, damp, keep, ref, c, p, w)
+                               : drift(s, 2, v0, v1, damp, keep, ref, c, p, w);
+            vmax = sp > vmax ? sp : vmax;
+            #pragma omp barrier
+        }
+    }
+    free(sums); free(inv);
+    *vmax2 = vmax;
+    return worst;
 }

@@ -1,9 +1,9 @@
-"""The compiled 3D force kernel (kernels.c): built with the machine's C compiler on first use,
-like numba compiles on first use, and cached under a hash of the source, the flags and the
-CPU; written to a temporary name and renamed, so a killed build leaves nothing half-written.
+"""The compiled kernels (kernels.c): built with the machine's C compiler on first use, like
+numba compiles on first use, and cached under a hash of the source, the flags and the CPU;
+written to a temporary name and renamed, so a killed build leaves nothing half-written.
 
-Where no compiler works, the numba reference kernel (same arithmetic, about 3x slower) runs
-instead and a warning says so.
+Where no compiler works, the numba references (same arithmetic, about 3x slower) run instead
+and a warning says so.
 """
 from __future__ import annotations
 
@@ -23,6 +23,16 @@ FLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-ffast-math", "-f
          "-shared", "-fPIC"]
 _P, _D, _I = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
 SIGNATURE = ctypes.CFUNCTYPE(ctypes.c_int, _P, _P, _P, _P, _D, _D, _P, _P, _I, _I, _I)  # see kernels.c
+
+
+class Step(ctypes.Structure):
+    """kernels.c's Step: one body and one control step of it (pointers into its arrays)."""
+    _fields_ = ([(n, _I) for n in ("dim", "nv", "ne", "nt", "n_sub", "n_rotors", "n_boxes")]
+                + [(n, _D) for n in ("dt", "mu", "lam", "damping", "deform_damping", "gravity",
+                                     "ground", "friction")]
+                + [(n, _P) for n in ("x", "v", "q", "fbuf", "ext", "dirs", "fext", "minv", "mass",
+                                     "Bm", "vol", "boxes_min", "boxes_max", "weights", "thrust",
+                                     "el", "face_ptr", "faces", "vert_ptr", "verts")])
 
 
 def _cpu_id() -> str:
@@ -58,18 +68,31 @@ def default_cache_dir() -> Path:
 
 
 @lru_cache(maxsize=None)
-def corotated_kernel_3d():
-    """A ctypes function with the C signature of kernels.c (compiled, or the numba cfunc)."""
+def library():
+    """The compiled kernels.c, or None (with a warning) where it cannot be built."""
     path = _library_path(default_cache_dir())
     try:
         if not path.exists():
             _build(path)
-        fn = ctypes.CDLL(str(path)).corotated_forces_3d
-        fn.restype, fn.argtypes = SIGNATURE._restype_, list(SIGNATURE._argtypes_)
-        return fn
+        lib = ctypes.CDLL(str(path))
     except (OSError, subprocess.CalledProcessError) as err:
         detail = getattr(err, "stderr", "") or str(err)
-        warnings.warn(f"sdexp: compiled FEM kernel unavailable ({detail.strip()[:200]}); "
-                      "using the numba kernel, about 3x slower", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"sdexp: compiled FEM kernels unavailable ({detail.strip()[:200]}); "
+                      "using the numba ones, about 3x slower", RuntimeWarning, stacklevel=2)
+        return None
+    lib.corotated_forces_3d.restype = SIGNATURE._restype_
+    lib.corotated_forces_3d.argtypes = list(SIGNATURE._argtypes_)
+    lib.advance.restype = ctypes.c_int
+    lib.advance.argtypes = [ctypes.POINTER(Step), ctypes.POINTER(ctypes.c_double)]
+    return lib
+
+
+def corotated_kernel_3d():
+    """A ctypes function with the C signature of kernels.c's corotated_forces_3d (compiled, or
+    the numba cfunc)."""
+    lib = library()
+    if lib is None:
         from sdexp.sim.fem import corotated_cfunc_3d
         return corotated_cfunc_3d.ctypes
+    return lib.corotated_forces_3d
+

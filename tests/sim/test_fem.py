@@ -136,6 +136,63 @@ def test_compiled_kernel_matches_the_numba_reference(block):
     np.testing.assert_allclose(q1, q2, atol=1e-12)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compiled_step_matches_the_numba_reference(dim, threads):
+    """kernels.c's advance (one OpenMP region per control step) against integrator.advance:
+    a block spun and thrown onto the ground and into a box, with a rotor, gravity and both
+    dampings, so every branch of the step runs."""
+    from sdexp.sim.drone import boundary_faces, build_rotors
+
+    threads = min(threads, numba.config.NUMBA_NUM_THREADS)
+    if dim == 3:
+        pts, el = box_tets((4, 2, 3), (1.0, 0.4, 0.6), (-0.5, -0.2, -0.3))
+    else:
+        pts, el = box_tris((8, 3), (1.0, 0.4), (-0.5, -0.2))
+    fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
+    up = np.eye(dim)[1]
+    rotors = build_rotors(fem.rest, boundary_faces(fem.elems), [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
+    lo, hi = np.full(dim, -0.1), np.full(dim, 2.0)
+    lo[0] = 0.55  # a wall the block slides into
+    rng = np.random.default_rng(7)
+    v0 = _rigid_field(fem.rest, rng, dim) + 0.2 * rng.standard_normal(fem.rest.shape) + np.r_[1.5, -1.0, 0.0][:dim]
+    bodies = [Body(fem, threads, rotors, ground=-0.35, boxes_min=lo, boxes_max=hi, friction=0.5, compiled=c)
+              for c in (True, False)]
+    assert bodies[0]._step is not None, "the C kernels did not build"
+    numba.set_num_threads(threads)
+    c, ref = bodies
+    for body in bodies:
+        body.v[:] = v0
+    touched = np.zeros(2, bool)
+    for _ in range(30):
+        (worst_c, vmax_c), (worst_nb, vmax_nb) = (body.run(20, 2e-4, [3.0], 0.5, 9.81, 20.0) for body in bodies)
+        assert worst_c == worst_nb and vmax_c == pytest.approx(vmax_nb, rel=1e-9)
+        touched |= np.isclose([ref.x[:, 1].min(), ref.x[:, 0].max()], [-0.35, 0.55])
+    assert touched.all(), "the block should touch the ground and the wall"
+    scale = np.abs(ref.x).max()
+    np.testing.assert_allclose(c.x, ref.x, atol=1e-10 * scale)
+    np.testing.assert_allclose(c.v, ref.v, atol=1e-9 * np.abs(ref.v).max())
+    np.testing.assert_allclose(c.q, ref.q, atol=1e-10)
+    np.testing.assert_allclose(c.dirs, ref.dirs, atol=1e-10)
+
+
+def test_without_a_compiler_the_numba_kernels_run(block, tmp_path, monkeypatch):
+    """No working C compiler: a warning, no half-built library left, and bodies still step."""
+    from sdexp.sim import native
+
+    monkeypatch.setenv("SDEXP_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "false")
+    native.library.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="numba"):
+            body = FreeBody(block)
+        assert body._step is None and not list(tmp_path.iterdir())
+        body.run(10)
+        assert np.isfinite(body.x).all()
+    finally:
+        native.library.cache_clear()
+
+
 def _rigid_field(x, rng, dim):
     w = rng.standard_normal(3)
     if dim == 2:
