@@ -161,7 +161,7 @@ class DiscrepancyConfig:
     fit_windows: int = 30              # training windows the fits use (evenly thinned): the cost driver
     candidates: List[str] = field(default_factory=list)  # [] = the whole effect library
     alpha: float = 0.05                # family-wise error rate of the candidate tests (Bonferroni)
-    min_gain: float = 0.05             # smallest held-out relative improvement that names an effect
+    min_gain: float = 0.02             # smallest held-out relative improvement that names an effect
     screen: int = 3                    # candidates refined and tested on held-out flights
     max_effects: int = 2               # effects added one after another while the residual remains
     floor_flights: int = 8             # nominal simulated flights that calibrate the noise floor

@@ -4,8 +4,11 @@ Each candidate is parametrised so that theta = 0 is the nominal simulator and th
 channels move about linearly in theta over the strengths that matter (ground effect in R^2,
 stiffness as a compliance change, wind as the dynamic-pressure vector |w| w, payload as mass
 and first moments): one finite-difference Jacobian then fits well, and a second Gauss-Newton
-step (chord) corrects what is left. ``options`` are discrete choices fitted by enumeration
-(which rotor lost thrust).
+step (chord) corrects what is left. Where no parametrisation is near-linear over the range
+(stiffness: its strong changes shift the bending frequencies, so the predicted oscillations
+move out of phase; a delay shifts whole responses in time) a coarse ``scan`` of theta values
+picks where the finite differences are taken. ``options`` are discrete choices fitted by
+enumeration (which rotor lost thrust).
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ class Candidate:
     options: list = field(default_factory=lambda: [None])
     base: Callable | None = None         # option -> entries at theta = 0 when not nominal
     anchor: np.ndarray | None = None     # where the other columns are differenced (payload: a mass)
+    scan: list | None = None             # theta values tried first; the best is linearised about
 
 
 def library_candidates(drone, names=None) -> list[Candidate]:
@@ -69,7 +73,7 @@ def library_candidates(drone, names=None) -> list[Candidate]:
         "actuation_delay": Candidate(
             "actuation_delay", ["delay"], a([0.02]), a([0.0]), a([0.3]),
             lambda th, o: [{"name": "actuation_delay", "delay": float(max(th[0], 0.0))}],
-            lambda th, o: {"delay": float(th[0])}),
+            lambda th, o: {"delay": float(th[0])}, scan=[a([0.03]), a([0.06]), a([0.12])]),
         "thrust_loss": Candidate(
             "thrust_loss", ["fraction"], a([0.1]), a([0.0]), a([0.9]),
             lambda th, o: [{"name": "thrust_loss", "rotor": int(o), "fraction": float(th[0])}],
@@ -84,7 +88,8 @@ def library_candidates(drone, names=None) -> list[Candidate]:
         "stiffness_scale": Candidate(
             "stiffness_scale", ["compliance"], a([0.2]), a([-0.8]), a([4.0]),
             lambda th, o: [{"name": "stiffness_scale", "scale": float(1.0 / (1.0 + th[0]))}],
-            lambda th, o: {"scale": float(1.0 / (1.0 + th[0]))}),
+            lambda th, o: {"scale": float(1.0 / (1.0 + th[0]))},
+            scan=[a([1.0 / k - 1.0]) for k in (0.5, 0.7, 1.4, 2.0)]),   # scale in factors of ~sqrt 2
         "damping_scale": Candidate(
             "damping_scale", ["excess"], a([0.3]), a([-1.0]), a([9.0]),
             lambda th, o: [{"name": "damping_scale", "scale": float(max(1.0 + th[0], 0.0))}],

@@ -2,8 +2,9 @@
 with a test that is honest about trying many.
 
 Fit: theta minimises the noise-floor-normalised squared residuals over the training windows,
-by a finite-difference Jacobian (one rollout per parameter, all windows) and bounded linear
-least squares, then a chord Gauss-Newton step for the candidates that pass screening.
+by a finite-difference Jacobian (one rollout per parameter, all windows; about the best point
+of the candidate's scan where it has one) and bounded linear least squares, then a chord
+Gauss-Newton step for the candidates that pass screening.
 Uncertainty: bootstrap over training windows of the final linear step.
 
 Name: for each refined candidate, the held-out per-window loss drop d_w = L_nominal,w -
@@ -53,14 +54,24 @@ def _solve(J, r, lo, hi):
 
 
 def linear_fit(cand: Candidate, predictor, train, sigma, r_nom_train, base_effects, rng) -> Fit:
-    """Finite-difference Jacobian at theta = 0 (or the candidate's anchor) on the training
-    windows, bounded least squares, and the training loss the linear model predicts. Options
-    (discrete choices) are fitted in turn and the best kept."""
+    """Finite-difference Jacobian at theta = 0 (or the candidate's anchor, or the best point of
+    its scan) on the training windows, bounded least squares, and the training loss the linear
+    model predicts. Options (discrete choices) are fitted in turn and the best kept."""
     best = None
     for option in cand.options:
         roll = lambda th: predictor.residual(train, base_effects + cand.build(th, option))
         p = len(cand.params)
         ref = predictor.residual(train, base_effects + cand.base(option)) if cand.base else r_nom_train
+        centre, r_centre = _scan(cand, roll, ref, sigma)
+        if centre is not None:
+            # linear about the scan's best point: r(centre + delta) = r_centre - J delta
+            J = _jacobian(cand, roll, centre, r_centre, sigma)
+            R = (r_centre / sigma).reshape(-1)
+            delta = _solve(J, R, cand.lower - centre, cand.upper - centre)
+            loss = float(np.mean((R - J @ delta) ** 2))
+            if best is None or loss < best[0]:
+                best = (loss, option, centre + delta, J, R, centre)
+            continue
         anchor = cand.anchor if cand.anchor is not None else np.zeros(p)
         r_anchor = roll(anchor) if np.any(anchor) else ref
         cols = []
@@ -77,21 +88,47 @@ def linear_fit(cand: Candidate, predictor, train, sigma, r_nom_train, base_effec
         theta = _solve(J, R, cand.lower, cand.upper)
         loss = float(np.mean((R - J @ theta) ** 2))
         if best is None or loss < best[0]:
-            best = (loss, option, theta, J, R)
-    loss, option, theta, J, R = best
-    std = bootstrap_std(J, R, train.count, sigma.size, cand, rng)
+            best = (loss, option, theta, J, R, np.zeros(p))
+    loss, option, theta, J, R, centre = best
+    std = bootstrap_std(J, R, train.count, sigma.size, cand, rng, centre)
     return Fit(cand.name, option, theta, std, cand.report(theta, option), cand.build(theta, option),
                loss, evidence={"jacobian": J})
 
 
-def bootstrap_std(J, R, n_windows, per_window, cand, rng, draws: int = 100) -> np.ndarray:
-    """Spread of the bounded linear solution over training windows drawn with replacement."""
+def _scan(cand: Candidate, roll, ref, sigma):
+    """(theta, residual) of the scan point with the lowest training loss, if it beats theta = 0;
+    else (None, None)."""
+    best, r_best, loss = None, None, float(np.mean((ref / sigma) ** 2))
+    for th in cand.scan or []:
+        r = roll(th)
+        lt = float(np.mean((r / sigma) ** 2))
+        if lt < loss:
+            best, r_best, loss = np.asarray(th, dtype=float), r, lt
+    return best, r_best
+
+
+def _jacobian(cand: Candidate, roll, theta, r, sigma) -> np.ndarray:
+    """Finite-difference J of the normalised residual at theta (r(theta + h) = r - J h), each
+    step half the candidate's typical strength, pointed into the bounds."""
+    cols = []
+    for j in range(len(theta)):
+        h = 0.5 * cand.steps[j] * (1 if theta[j] + 0.5 * cand.steps[j] <= cand.upper[j] else -1)
+        th = theta.copy()
+        th[j] += h
+        cols.append((r - roll(th)) / h)
+    return np.stack([c / sigma for c in cols], axis=-1).reshape(-1, len(cols))
+
+
+def bootstrap_std(J, R, n_windows, per_window, cand, rng, centre, draws: int = 100) -> np.ndarray:
+    """Spread of the bounded linear solution (a step from ``centre``) over training windows
+    drawn with replacement."""
     Jw = J.reshape(n_windows, per_window, -1)
     Rw = R.reshape(n_windows, per_window)
     out = []
     for _ in range(draws):
         pick = rng.integers(0, n_windows, n_windows)
-        out.append(_solve(Jw[pick].reshape(-1, J.shape[1]), Rw[pick].reshape(-1), cand.lower, cand.upper))
+        out.append(_solve(Jw[pick].reshape(-1, J.shape[1]), Rw[pick].reshape(-1), cand.lower - centre,
+                          cand.upper - centre))
     return np.std(out, axis=0)
 
 
@@ -130,13 +167,7 @@ def polish(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effect
     loss = float(np.mean((r / sigma) ** 2))
     moved = False
     for _ in range(iters):
-        cols = []
-        for j in range(len(theta)):
-            h = 0.5 * cand.steps[j] * (1 if theta[j] + 0.5 * cand.steps[j] <= cand.upper[j] else -1)
-            th = theta.copy()
-            th[j] += h
-            cols.append((r - roll(th)) / h)
-        J = np.stack([c / sigma for c in cols], axis=-1).reshape(-1, len(cols))
+        J = _jacobian(cand, roll, theta, r, sigma)
         delta = _solve(J, (r / sigma).reshape(-1), cand.lower - theta, cand.upper - theta)
         trial = np.clip(theta + delta, cand.lower, cand.upper)
         r_new = roll(trial)
