@@ -213,8 +213,8 @@ _NO_ROTORS = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.
 
 class Body:
     """The mutable state of one FEM body and the call that advances it. The state arrays (x, v,
-    q, fext) are updated in place and must stay the same objects: the compiled step holds
-    pointers to them.
+    q, fext) are updated in place and must stay the same arrays: the compiled step holds
+    pointers to them (checked at every ``run``).
 
     ``threads`` sets how many force buffers (and threads) the element loop uses; on the numba
     path (``compiled=False``, or no C compiler) the caller sets numba's thread count to match."""
@@ -256,7 +256,6 @@ class Body:
         for name, a in arrays.items():
             if not (a.flags.c_contiguous and a.dtype == want.get(name, np.float64)):
                 raise TypeError(f"Body.{name}: needs a C-contiguous {np.dtype(want.get(name, np.float64))} array")
-        self._bound = (self.x, self.v, self.q, self.fext)
         return Step(dim=d, nv=len(self.x), ne=f.n_elems, nt=self.fbuf.shape[0], n_rotors=len(self.dirs),
                     n_boxes=len(self.boxes_min), mu=f.mu, lam=f.lam, ground=max(self.ground, -1e300),
                     friction=self.friction, **{k: a.ctypes.data for k, a in arrays.items()})
@@ -273,9 +272,10 @@ class Body:
                            f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity,
                            self.ground, self.boxes_min, self.boxes_max, self.friction, *self.rotors,
                            self.thrust, self.ext, self.dirs, self.fext)
-        if any(a is not b for a, b in zip(self._bound, (self.x, self.v, self.q, self.fext))):
-            raise RuntimeError("Body state arrays were replaced: assign into them (x[:] = ...)")
         s = self._step
+        now = tuple(a.__array_interface__["data"][0] for a in (self.x, self.v, self.q, self.fext))
+        if (s.x, s.v, s.q, s.fext) != now:
+            raise RuntimeError("Body state arrays were replaced or copied: assign into them (x[:] = ...)")
         s.n_sub, s.dt, s.damping, s.deform_damping, s.gravity = n_sub, dt, damping, deform_damping, gravity
         vmax2 = ctypes.c_double()
         worst = self._lib.advance(ctypes.byref(s), ctypes.byref(vmax2))
