@@ -6,7 +6,7 @@ from sdexp.sim.drone import build_drone
 from tests.test_cli import make_cfg
 
 SMALL = [
-    "drone=leaf", "drone.damping=6.0", "drone.mesh.edge_length=0.5",   # the bench drone
+    "drone=leaf", "drone.mesh.edge_length=0.5",   # the bench drone
     "discrepancy.horizon=0.15", "discrepancy.stride=0.4", "discrepancy.history=0.2",
     "discrepancy.fit_windows=16", "discrepancy.screen=2", "discrepancy.floor_flights=3",
     "discrepancy.max_effects=1", "discrepancy.candidates=[payload,thrust_loss,quadratic_drag,motor_lag]",
