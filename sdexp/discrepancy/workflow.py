@@ -160,6 +160,15 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             tried += 1
             good += fits[i].train_loss < L_train
         v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+        cand_of = {c.name: c for c in remaining}
+        passing = [f for f, row in ((f, next(r for r in ranking if r["candidate"] == f.name)) for f in fits)
+                   if row.get("passes")]
+        if len(passing) > 1:
+            # confusable candidates compete at their polished fits, not at how far one
+            # Gauss-Newton step took each (a strong wind stops short, an IMU bias does not)
+            for f in passing:
+                polish(f, cand_of[f.name], pred, train, held, sigma, base, iters=1)
+            v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
         rounds.append({"round": rnd + 1, "verdict": v, "ranking": _jsonable(ranking), "z_threshold": float(z),
                        "held_loss_nominal": float(np.mean(cur_held_w))})
         log(f"discrepancy round {rnd + 1}: {v} {best.name if best else ''} "
@@ -167,7 +176,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             f"{best.held_loss if best else float('nan'):.3f}")
         if best is None:
             break
-        polish(best, next(c for c in remaining if c.name == best.name), pred, train, held, sigma, base, iters=1)
+        if len(passing) <= 1:
+            polish(best, cand_of[best.name], pred, train, held, sigma, base, iters=1)
         accepted.append(best)
         if rnd == 0:
             verdict, ties = v, [t.name for t in tie]
