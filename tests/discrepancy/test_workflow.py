@@ -70,3 +70,36 @@ def test_summary_counts_ties_nulls_and_gap():
     m = summarize(t)
     assert m["top1_accuracy"] == 0.5 and m["top1_or_tie_accuracy"] == 1.0
     assert m["null_false_positive_rate"] == 0.5 and m["median_gap_reduction"] == pytest.approx(0.7)
+
+
+def test_a_scan_finds_what_the_linearisation_at_zero_misses():
+    """A response whose slope at 0 has the wrong sign for the truth (like a strong stiffness
+    change): linearised at 0 the fit stays at its bound; linearised about the scan's best point,
+    one step lands near the truth (the workflow's Gauss-Newton steps take it from there)."""
+    from types import SimpleNamespace
+
+    from sdexp.discrepancy.candidates import Candidate
+    from sdexp.discrepancy.fit import linear_fit
+
+    truth = 1.2
+    f = lambda v: v ** 3 - v   # noqa: E731
+
+    class Predictor:
+        def residual(self, windows, effects):
+            v = effects[0]["v"] if effects else 0.0
+            return np.full((6, 3, 2), f(truth) - f(v))
+
+    sigma = np.ones((3, 2))
+    train = SimpleNamespace(count=6)
+
+    def cand(scan):
+        return Candidate("x", ["v"], np.array([0.05]), np.array([0.0]), np.array([2.0]),
+                         lambda th, o: [{"name": "x", "v": float(th[0])}], lambda th, o: {"v": float(th[0])},
+                         scan=scan)
+
+    r0 = Predictor().residual(None, [])
+    rng = np.random.default_rng(0)
+    plain = linear_fit(cand(None), Predictor(), train, sigma, r0, [], rng)
+    scanned = linear_fit(cand([np.array([v]) for v in (0.5, 1.1, 1.6)]), Predictor(), train, sigma, r0, [], rng)
+    assert abs(plain.theta[0] - truth) > 1.0
+    assert scanned.theta[0] == pytest.approx(truth, abs=0.1)
