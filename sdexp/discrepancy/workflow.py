@@ -161,8 +161,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             good += fits[i].train_loss < L_train
         v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
         cand_of = {c.name: c for c in remaining}
-        passing = [f for f, row in ((f, next(r for r in ranking if r["candidate"] == f.name)) for f in fits)
-                   if row.get("passes")]
+        passed = {r["candidate"] for r in ranking if r.get("passes")}
+        passing = [f for f in fits if f.name in passed]
         if len(passing) > 1:
             # confusable candidates compete at their polished fits, not at how far one
             # Gauss-Newton step took each (a strong wind stops short, an IMU bias does not)

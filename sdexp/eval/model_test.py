@@ -330,7 +330,7 @@ def speed_table(data, trained) -> pd.DataFrame:
     m = data.meta
     rows = [{"item": "dataset", "samples": m.get("samples"), "workers": m.get("workers"),
              "seconds": m.get("wall_seconds"), "samples_per_second": m.get("samples_per_second"),
-             "cached": True}]
+             "cached": bool(m.get("cached"))}]
     rows += [{"item": f"train {n}", "samples": None, "workers": None, "seconds": float(trained.seconds[n]),
               "epochs": len(h), "cached": bool(trained.cached)} for n, h in trained.history.items()]
     return pd.DataFrame(rows)

@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba
 import numpy as np
 import pandas as pd
 
@@ -32,7 +31,6 @@ class FreeBody(Body):
 
     def run(self, n: int, damping: float = 0.0, gravity: float = 0.0) -> int:
         """n substeps; returns the largest count of inverted elements seen."""
-        numba.set_num_threads(1)
         return super().run(n, self.dt, None, damping, gravity)[0]
 
 

@@ -216,8 +216,7 @@ class Body:
     q, fext) are updated in place and must stay the same arrays: the compiled step holds
     pointers to them (checked at every ``run``).
 
-    ``threads`` sets how many force buffers (and threads) the element loop uses; on the numba
-    path (``compiled=False``, or no C compiler) the caller sets numba's thread count to match."""
+    ``threads`` sets how many force buffers (and threads) the element loop uses."""
 
     def __init__(self, fem: FemModel, threads: int = 1, rotors=None, ground: float | None = None,
                  boxes_min=None, boxes_max=None, friction: float = 0.0, pinned=None,
@@ -268,6 +267,7 @@ class Body:
         f = self.fem
         self.thrust[:] = 0.0 if thrust is None else thrust
         if self._step is None:
+            nb.set_num_threads(min(self.fbuf.shape[0], nb.config.NUMBA_NUM_THREADS))
             return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
                            f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity,
                            self.ground, self.boxes_min, self.boxes_max, self.friction, *self.rotors,

@@ -168,7 +168,6 @@ class Simulator:
     def _advance(self, thrust: np.ndarray) -> None:
         body = self.body
         x_prev, v_prev = body.x.copy(), body.v.copy()
-        numba.set_num_threads(self.threads)
         inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity,
                                    self.drone.deformation_damping)
         self.t += self.cfg.control_dt

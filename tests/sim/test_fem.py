@@ -159,7 +159,6 @@ def test_compiled_step_matches_the_numba_reference(dim, threads):
     bodies = [Body(fem, threads, rotors, ground=-0.35, boxes_min=lo, boxes_max=hi, friction=0.5, compiled=c)
               for c in (True, False)]
     assert bodies[0]._step is not None, "the C kernels did not build"
-    numba.set_num_threads(threads)
     c, ref = bodies
     for body in bodies:
         body.v[:] = v0
@@ -238,7 +237,6 @@ def test_deformation_damping_stops_vibration_not_flight(block):
         body = FreeBody(block)
         body.v[:] = start
         P0, L0 = moments(body)
-        numba.set_num_threads(1)
         Body.run(body, 2400, body.dt, None, **kw)   # about 1 s
         P, L = moments(body)
         results[name] = (np.linalg.norm(P - P0) / np.linalg.norm(P0), np.linalg.norm(L - L0) / np.linalg.norm(L0))
