@@ -157,6 +157,7 @@ class DiscrepancyConfig:
     horizon: float = 0.2               # s predicted from each re-initialised measured state
     stride: float = 0.5                # s between window starts
     history: float = 0.3               # s of commands replayed through the actuation chain first
+    start_average: int = 8             # rows the start state's p, e, s are averaged over (causal, rate-carried)
     holdout: float = 0.5               # fraction of flights held out (at least one): tests need many windows
     fit_windows: int = 30              # training windows the fits use (evenly thinned): the cost driver
     candidates: List[str] = field(default_factory=list)  # [] = the whole effect library
@@ -257,6 +258,7 @@ def validate(cfg: DictConfig | Config) -> None:
     q = cfg.discrepancy
     _check(q.horizon > 0 and q.stride > 0 and q.history >= 0, "discrepancy.horizon/stride/history",
            (q.horizon, q.stride, q.history), "horizon > 0 s, stride > 0 s, history >= 0 s")
+    _check(q.start_average >= 1, "discrepancy.start_average", q.start_average, ">= 1 rows")
     _check(0 < q.holdout < 1, "discrepancy.holdout", q.holdout, "in (0, 1)")
     _check(0 < q.alpha < 1, "discrepancy.alpha", q.alpha, "in (0, 1)")
     _check(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",

@@ -162,7 +162,7 @@ def oracle_gap(sc: dict, folder: Path, drone, drone_cfg, sim_cfg, noise_cfg, dcf
     folder = Path(folder)
     logs = read_logs(folder / "logs", drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
     h, stride, hist = steps_of(dcfg, logs.dt)
-    w = make_windows(logs.flights, logs.channels, h, stride, hist)
+    w = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
     _, held_ids = split_flights(len(logs.flights), dcfg.holdout)
     held = subset(w, held_ids)
     bend, r_floor, _ = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)

@@ -4,9 +4,12 @@ The logs hold sensor channels only, so a measured state is turned back into a me
 the rest mesh posed rigidly at (p, e) with the rigid velocity of (p_dot, e_dot), plus a bend
 field linear in s (and its rate linear in s_dot). The linear map is calibrated once per drone
 on a nominal, noise-free flight of the simulator itself (least squares of body-frame vertex
-displacements on s), which is knowledge of the model, not of the logs. Two correction passes
-then shift the inputs until the posed mesh, read through the sensor pipeline of the simulator
-being tested (its sensor effects included), reproduces the measured channels.
+displacements on s), which is knowledge of the model, not of the logs. The map's offset, the
+deformation that s does not see (the sag under the mean load), is a static response and scales
+with the compliance of the simulator being tested (a stiffness candidate), so it re-initialises
+near that simulator's own equilibrium rather than exciting a vibration the logs never had. Two
+correction passes then shift the inputs until the posed mesh, read through the sensor pipeline
+of the simulator being tested (its sensor effects included), reproduces the measured channels.
 """
 from __future__ import annotations
 
@@ -43,8 +46,10 @@ class BendMap:
     def local(self, s: np.ndarray) -> np.ndarray:
         return self.rest_local + (s @ self.A + self.c).reshape(self.rest_local.shape)
 
-    def local_rate(self, s_dot: np.ndarray) -> np.ndarray:
-        return (s_dot @ self.A).reshape(self.rest_local.shape)
+    def stiffer(self, k: float) -> "BendMap":
+        """The map for a material k times stiffer: with s given, linear statics leave the shape
+        of the bend (A) and shrink the unseen rest (c) by 1/k."""
+        return self if k == 1.0 else BendMap(self.rest_local, self.A, self.c / k)
 
 
 def rest_local(drone) -> np.ndarray:
@@ -151,15 +156,16 @@ def angle_columns_cached(drone) -> np.ndarray:
     return _ANG[key]
 
 
-def predict_windows(sim, bend: BendMap, flight, starts, horizon: int, history: int) -> np.ndarray:
+def predict_windows(sim, bend: BendMap, flight, starts, start_rows, horizon: int, history: int) -> np.ndarray:
     """(W, horizon, C) predicted channels for windows starting at rows ``starts``: re-initialise
-    at the measured row, replay the ``history`` commands before it through the actuation chain,
+    at the measured state ``start_rows`` (W, C), replay the ``history`` commands before it through the actuation chain,
     then step with the logged commands. A window whose simulation fails keeps its last state."""
     C = flight.y.shape[1]
     layout = sim.drone.layout
+    bend = bend.stiffer(float(np.mean(sim.fem.mu / sim.drone.fem.mu)))
     out = np.empty((len(starts), horizon, C))
     for w, i0 in enumerate(starts):
-        x, v, R = reinit_state(sim, flight.y[i0], bend)
+        x, v, R = reinit_state(sim, start_rows[w], bend)
         sim.set_state(x, v, R, t=flight.t[i0], history=flight.u[max(0, i0 - history):i0])
         for k in range(horizon):
             # the simulator's noise is off here: step's readings are the noise-free ones

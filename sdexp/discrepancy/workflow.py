@@ -33,7 +33,7 @@ from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.errors import UserError
 
-FLOOR_FORMAT = 1
+FLOOR_FORMAT = 2
 
 
 def _plain(x):
@@ -60,14 +60,14 @@ def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: s
     h, stride, hist = steps_of(dcfg, dt)
     rec = _plain(dcfg.record)
     payload = {**model_key(drone_cfg, sim_cfg, noise_cfg), "record": rec, "h": h, "stride": stride,
-               "hist": hist, "flights": int(dcfg.floor_flights), "seed": seed}
+               "hist": hist, "average": int(dcfg.start_average), "flights": int(dcfg.floor_flights), "seed": seed}
 
     def make():
         with tempfile.TemporaryDirectory() as tmp:
             record_flights(drone, sim_cfg, noise_cfg, Path(tmp), int(dcfg.floor_flights), rec["seconds"],
                            rec["manoeuvres"], seed, rec["height"], rec["ground"], rec["amplitude"])
             logs = read_logs(tmp, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
-        w = make_windows(logs.flights, logs.channels, h, stride, hist)
+        w = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
         r = Predictor(drone, sim_cfg, noise_cfg, bend).residual(w, [])
         return {"r": r, "start_rows": w.start_rows, "start_u": w.start_u}
 
@@ -104,7 +104,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     if len(logs.flights) < 2:
         raise UserError(f"{logs.folder}: {len(logs.flights)} flight(s); at least 2 are needed to hold one out")
     h, stride, hist = steps_of(dcfg, dt)
-    w_all = make_windows(logs.flights, logs.channels, h, stride, hist)
+    w_all = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
     too_short = [f.name for f, s in zip(logs.flights, w_all.starts) if len(s) == 0]
     if too_short:
         raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history + horizon "
