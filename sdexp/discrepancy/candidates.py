@@ -89,7 +89,7 @@ def library_candidates(drone, names=None) -> list[Candidate]:
             "stiffness_scale", ["compliance"], a([0.2]), a([-0.8]), a([4.0]),
             lambda th, o: [{"name": "stiffness_scale", "scale": float(1.0 / (1.0 + th[0]))}],
             lambda th, o: {"scale": float(1.0 / (1.0 + th[0]))},
-            scan=[a([1.0 / k - 1.0]) for k in (0.5, 0.7, 1.4, 2.0)]),   # scale in factors of ~sqrt 2
+            scan=[a([2.0 ** -(j / 4) - 1.0]) for j in (-4, -3, -2, -1, 1, 2, 3, 4)]),   # scale 2^(j/4)
         "damping_scale": Candidate(
             "damping_scale", ["excess"], a([0.3]), a([-1.0]), a([9.0]),
             lambda th, o: [{"name": "damping_scale", "scale": float(max(1.0 + th[0], 0.0))}],
