@@ -2,7 +2,7 @@
 
 The logs hold sensor channels only, so a measured state is turned back into a mesh state:
 the rest mesh posed rigidly at (p, e) with the rigid velocity of (p_dot, e_dot), plus a bend
-field linear in s (and its rate linear in s_dot). The linear map is calibrated once per drone
+field linear in s (its rate left out: see pose). The linear map is calibrated once per drone
 on a nominal, noise-free flight of the simulator itself (least squares of body-frame vertex
 displacements on s), which is knowledge of the model, not of the logs. The map's offset, the
 deformation that s does not see (the sag under the mean load), is a static response and scales
@@ -158,8 +158,8 @@ def angle_columns_cached(drone) -> np.ndarray:
 
 def predict_windows(sim, bend: BendMap, flight, starts, start_rows, horizon: int, history: int) -> np.ndarray:
     """(W, horizon, C) predicted channels for windows starting at rows ``starts``: re-initialise
-    at the measured state ``start_rows`` (W, C), replay the ``history`` commands before it through the actuation chain,
-    then step with the logged commands. A window whose simulation fails keeps its last state."""
+    at the measured state ``start_rows`` (W, C), replay the ``history`` commands before it
+    through the actuation chain, then step with the logged commands. A window whose simulation fails keeps its last state."""
     C = flight.y.shape[1]
     layout = sim.drone.layout
     bend = bend.stiffer(float(np.mean(sim.fem.mu / sim.drone.fem.mu)))

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sdexp.discrepancy.logs import angle_columns, channel_names
-from sdexp.discrepancy.predict import BendMap, predict_windows, residuals
+from sdexp.discrepancy.predict import BendMap, predict_windows, residuals, wrap
 
 
 @dataclass
@@ -52,7 +52,7 @@ def start_estimate(t: np.ndarray, y: np.ndarray, rows: np.ndarray, average: int,
     for j in range(1, average):
         prev = np.maximum(rows - j, 0)
         d = y[prev, :nq] + integral[rows] - integral[prev] - y[rows, :nq]
-        d[:, ang[:nq]] = (d[:, ang[:nq]] + np.pi) % (2 * np.pi) - np.pi
+        d[:, ang[:nq]] = wrap(d[:, ang[:nq]])
         shift += d
     out[:, :nq] += shift / max(average, 1)
     return out

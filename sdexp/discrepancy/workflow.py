@@ -107,8 +107,9 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     w_all = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
     too_short = [f.name for f, s in zip(logs.flights, w_all.starts) if len(s) == 0]
     if too_short:
-        raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history + horizon "
-                        f"({(hist + h + 1) * dt:g} s)")
+        lead = max(hist, int(dcfg.start_average) - 1)
+        raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history (or "
+                        f"start_average rows) + horizon ({(lead + h + 1) * dt:g} s)")
     bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
     sigma = noise_floor(r_floor)
     floor_w = window_loss(r_floor, sigma)
