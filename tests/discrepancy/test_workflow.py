@@ -46,6 +46,21 @@ def test_hidden_payload_is_named_added_and_the_gap_shrinks(tmp_path, small_cfg, 
     assert sim.fem.mass.sum() == pytest.approx(1.0 + fitted["params"]["mass"])
 
 
+def test_a_push_no_candidate_makes_is_answered_unexplained_where_it_shows(tmp_path, small_cfg, leaf):
+    # a steady 3 m/s wind along x pushes the body sideways; the candidates left to the
+    # workflow here change the thrust's timing or the body's inertia, never a sideways force
+    # (a weak rotor would: it tilts the body, and is named with the residual left, see
+    # report["remaining_above_floor"])
+    cfg = small_cfg.copy()
+    cfg.discrepancy.candidates = ["motor_lag", "actuation_delay"]
+    record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [3.0, 0.0, 0.0]}], seed=13)
+    rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
+    assert rep["verdict"] == "unexplained" and rep["effects"] == []
+    cell = rep["unexplained"]
+    assert cell["channel"] in ("p_x", "p_dot_x") and cell["ratio"] > cfg.discrepancy.unexplained_ratio
+    assert "regime" in cell
+
+
 def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg):
     params = OmegaConf.create({"effects": ["thrust_loss"], "levels": [1], "seeds": 1, "nulls": 1,
                                "combos": False, "unmodelled": 0})
