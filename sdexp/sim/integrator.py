@@ -50,6 +50,22 @@ def rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs):
                 ext[i, 2] += f * nz
 
 
+@nb.njit(cache=True)
+def extent(x):
+    """Largest side of the axis-aligned bounding box of x (n, dim); NaN if x is not finite.
+    (NumPy's min/max over axis 0 of an (n, 3) array take ~80 us for the flower: 3% of a step.)"""
+    lo = x[0].copy()
+    hi = x[0].copy()
+    for i in range(x.shape[0]):
+        for c in range(x.shape[1]):
+            a = x[i, c]
+            if not np.isfinite(a):
+                return np.nan
+            lo[c] = min(lo[c], a)
+            hi[c] = max(hi[c], a)
+    return np.max(hi - lo)
+
+
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
 def damp_deformation(x, v, mass, minv, keep):
     """Implicit mass-proportional damping of the deformation velocity: every free vertex keeps

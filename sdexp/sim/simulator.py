@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from sdexp.sim.drone import Drone
 from sdexp.sim.effects import build_effects, overrides
 from sdexp.sim.fem import stable_substep
-from sdexp.sim.integrator import Body
+from sdexp.sim.integrator import Body, extent
 from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
 
 
@@ -172,13 +172,14 @@ class Simulator:
                                    self.drone.deformation_damping)
         self.t += self.cfg.control_dt
         reason = None
-        if not (np.isfinite(vmax2) and np.all(np.isfinite(body.x))):
+        size = extent(body.x)
+        if not (np.isfinite(vmax2) and np.isfinite(size)):
             reason, detail = "non_finite", "positions or velocities are not finite"
         elif inverted > 0:
             reason, detail = "inverted_element", f"{inverted} elements inverted"
         elif vmax2 > self.cfg.max_speed ** 2:
             reason, detail = "runaway_speed", f"vertex speed {np.sqrt(vmax2):.1f} m/s > sim.max_speed"
-        elif np.ptp(body.x, axis=0).max() > self.cfg.max_stretch * self._rest_extent:
+        elif size > self.cfg.max_stretch * self._rest_extent:
             reason, detail = "runaway_extent", "body stretched beyond sim.max_stretch x its rest size"
         if reason is not None:
             self.failure = Failure(reason, self.t, detail)

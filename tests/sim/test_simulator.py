@@ -97,6 +97,22 @@ def test_blow_up_ends_the_episode_as_a_recorded_failure(plate):
     assert np.all(np.isfinite(frozen.pos))
 
 
+def test_each_failure_check_names_its_reason(plate):
+    sim = Simulator(plate, sim_cfg(), noise_cfg(**QUIET))
+    sim.body.v[3, 1] = np.nan
+    sim.step(np.zeros(3))
+    assert sim.failure.reason == "non_finite"
+    # a body stretched past max_stretch x its rest size: a 10% stretch against a 5% limit
+    sim = Simulator(plate, sim_cfg(max_stretch=1.05), noise_cfg(**QUIET))
+    sim.body.x[:] = plate.fem.rest * np.array([1.1, 1.0, 1.0])
+    sim.step(np.zeros(3))
+    assert sim.failure.reason == "runaway_extent"
+    sim = Simulator(plate, sim_cfg(max_speed=1.0), noise_cfg(**QUIET))
+    sim.body.v[:] = [2.0, 0.0, 0.0]
+    sim.step(np.zeros(3))
+    assert sim.failure.reason == "runaway_speed"
+
+
 def test_ground_stops_a_falling_drone_and_boxes_keep_vertices_out():
     beam = beam_drone_2d()
     sim = Simulator(beam, sim_cfg(ground=-0.5, obstacles=[{"min": [-0.3, -2.0], "max": [0.3, -0.2]}]),
