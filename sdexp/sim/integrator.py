@@ -11,7 +11,7 @@ import numba as nb
 import numpy as np
 
 from sdexp.sim.fem import FemModel, elastic_forces_2d, elastic_forces_3d, rest_quaternions
-from sdexp.sim.native import Step, corotated_kernel_3d, library
+from sdexp.sim.native import Step, blocked, corotated_kernel_3d, library
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
@@ -230,7 +230,8 @@ _NO_ROTORS = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.
 class Body:
     """The mutable state of one FEM body and the call that advances it. The state arrays (x, v,
     q, fext) are updated in place and must stay the same arrays: the compiled step holds
-    pointers to them (checked at every ``run``).
+    pointers to them (checked at every ``run``). q is the compiled 3D step's blocked layout
+    there: set and read it through ``set_rotation`` and ``quaternions``.
 
     ``threads`` sets how many force buffers (and threads) the element loop uses."""
 
@@ -258,14 +259,35 @@ class Body:
         self.friction = friction
         self.thrust = np.zeros(m)
         self._lib = library() if compiled else None
+        self._elements = (fem.elems, fem.Bm, fem.vol) if d == 2 or self._lib is None else self._block()
         self._step = self._bind() if self._lib is not None else None
+
+    def _block(self):
+        """The compiled 3D step reads element data in blocks of SIMD lanes (kernels.c,
+        forces_impl): (el padded, Bm, vol), and q becomes blocked too."""
+        f, b = self.fem, self._lib.block_size()
+        self.q = blocked(self.q, b, pad=[1.0, 0.0, 0.0, 0.0])
+        el = np.zeros((self.q.shape[0] * b, 4), np.int32)
+        el[:f.n_elems] = f.elems
+        return el, blocked(f.Bm.reshape(f.n_elems, 9), b), blocked(f.vol, b)
+
+    def set_rotation(self, q) -> None:
+        """Every element's warm-start rotation to the quaternion q (w, x, y, z)."""
+        self.q[:] = np.asarray(q)[None, :, None] if self.q.ndim == 3 else q
+
+    def quaternions(self) -> np.ndarray:
+        """The elements' warm-start rotations, (ne, 4), whatever the layout."""
+        if self.q.ndim == 2:
+            return self.q
+        return np.moveaxis(self.q, -1, 1).reshape(-1, 4)[:self.fem.n_elems]
 
     def _bind(self) -> Step:
         f, d = self.fem, self.fem.dim
+        el, Bm, vol = self._elements
         arrays = dict(x=self.x, v=self.v, q=self.q, fbuf=self.fbuf, ext=self.ext, dirs=self.dirs,
-                      fext=self.fext, minv=self.minv, mass=f.mass, Bm=f.Bm, vol=f.vol,
+                      fext=self.fext, minv=self.minv, mass=f.mass, Bm=Bm, vol=vol,
                       boxes_min=self.boxes_min, boxes_max=self.boxes_max, weights=self.rotors[4],
-                      thrust=self.thrust, el=f.elems, face_ptr=self.rotors[0], faces=self.rotors[1],
+                      thrust=self.thrust, el=el, face_ptr=self.rotors[0], faces=self.rotors[1],
                       vert_ptr=self.rotors[2], verts=self.rotors[3])
         want = {"el": np.int32, "face_ptr": np.int64, "faces": np.int64, "vert_ptr": np.int64, "verts": np.int64}
         for name, a in arrays.items():

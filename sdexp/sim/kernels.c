@@ -18,37 +18,49 @@ static int omp_get_thread_num(void) { return 0; }
 #define B 32  /* elements per SIMD block */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
 /* Adds the nodal forces of elements [e0, e1) into f (nv, 3) and updates their warm-start
- * quaternions q (ne, 4) by POLAR_ITERATIONS polar iterations. Returns the inverted count. */
-static int forces_range(const double *restrict x, const int32_t *restrict el, const double *restrict Bm,
-        const double *restrict vol, double mu, double lam, double *restrict q,
-        double *restrict f, int64_t e0, int64_t e1)
+ * quaternions by POLAR_ITERATIONS polar iterations. Returns the inverted count.
+ * Two layouts of the element data: rows (Bm (ne, 3, 3), vol (ne), q (ne, 4)), gathered into
+ * the block's lanes first; or blocked (Bm (nb, 9, B), vol (nb, B), q (nb, 4, B), el padded to
+ * nb B rows, e0 a multiple of B), read in place by the SIMD loop: no gather or scatter of q,
+ * 20% faster on the flower. The SIMD loop reads both through the same [k B + i] pointers. */
+static inline __attribute__((always_inline)) int forces_impl(const double *restrict x,
+        const int32_t *restrict el, const double *restrict Bm, const double *restrict vol, double mu,
+        double lam, double *restrict q, double *restrict f, int64_t e0, int64_t e1, const int blocked)
 {
     int inverted = 0;
-    double F[9][B], Q[4][B], M[9][B], V[B], H[9][B];
+    double D[9][B], Q[4][B], M[9][B], V[B], H[9][B];
     for (int64_t base = e0; base < e1; base += B) {
         int n = (e1 - base) < B ? (int)(e1 - base) : B;
+        const double *Mp = blocked ? Bm + 9 * base : &M[0][0], *Vp = blocked ? vol + base : V;
+        double *Qp = blocked ? q + 4 * base : &Q[0][0];
         for (int i = 0; i < B; i++) {
-            if (i >= n) { for (int k = 0; k < 9; k++) { F[k][i] = (k % 4 == 0); M[k][i] = 0; }
-                          Q[0][i] = 1; Q[1][i] = Q[2][i] = Q[3][i] = 0; V[i] = 0; continue; }
-            int64_t e = base + i;
+            if (i >= n && !blocked) { for (int k = 0; k < 9; k++) D[k][i] = M[k][i] = 0.0;
+                                      Q[0][i] = 1; Q[1][i] = Q[2][i] = Q[3][i] = 0; V[i] = 0; continue; }
+            int64_t e = base + i;   /* blocked: rows past e1 are padding, vertex 0 four times */
             const int32_t *t = el + 4 * e;
             const double *p0 = x + 3 * t[0], *p1 = x + 3 * t[1], *p2 = x + 3 * t[2], *p3 = x + 3 * t[3];
-            double d[3][3];
-            for (int c = 0; c < 3; c++) { d[c][0] = p1[c] - p0[c]; d[c][1] = p2[c] - p0[c]; d[c][2] = p3[c] - p0[c]; }
-            const double *b = Bm + 9 * e;
-            for (int r = 0; r < 3; r++) for (int c = 0; c < 3; c++)
-                F[3 * r + c][i] = d[r][0] * b[c] + d[r][1] * b[3 + c] + d[r][2] * b[6 + c];
-            for (int k = 0; k < 9; k++) M[k][i] = b[k];
-            for (int k = 0; k < 4; k++) Q[k][i] = q[4 * e + k];
-            V[i] = -vol[e];
+            for (int c = 0; c < 3; c++) { D[3 * c][i] = p1[c] - p0[c]; D[3 * c + 1][i] = p2[c] - p0[c]; D[3 * c + 2][i] = p3[c] - p0[c]; }
+            if (!blocked) {
+                const double *b = Bm + 9 * e;
+                for (int k = 0; k < 9; k++) M[k][i] = b[k];
+                for (int k = 0; k < 4; k++) Q[k][i] = q[4 * e + k];
+                V[i] = vol[e];
+            }
         }
         #pragma omp simd reduction(+:inverted)
         for (int i = 0; i < B; i++) {
-            double f00 = F[0][i], f01 = F[1][i], f02 = F[2][i], f10 = F[3][i], f11 = F[4][i], f12 = F[5][i],
-                   f20 = F[6][i], f21 = F[7][i], f22 = F[8][i];
+            double b00 = Mp[0 * B + i], b01 = Mp[1 * B + i], b02 = Mp[2 * B + i], b10 = Mp[3 * B + i], b11 = Mp[4 * B + i],
+                   b12 = Mp[5 * B + i], b20 = Mp[6 * B + i], b21 = Mp[7 * B + i], b22 = Mp[8 * B + i];
+            double d00 = D[0][i], d01 = D[1][i], d02 = D[2][i], d10 = D[3][i], d11 = D[4][i], d12 = D[5][i],
+                   d20 = D[6][i], d21 = D[7][i], d22 = D[8][i];
+            /* F = Ds Dm^-1 */
+            double f00 = d00 * b00 + d01 * b10 + d02 * b20, f01 = d00 * b01 + d01 * b11 + d02 * b21, f02 = d00 * b02 + d01 * b12 + d02 * b22;
+            double f10 = d10 * b00 + d11 * b10 + d12 * b20, f11 = d10 * b01 + d11 * b11 + d12 * b21, f12 = d10 * b02 + d11 * b12 + d12 * b22;
+            double f20 = d20 * b00 + d21 * b10 + d22 * b20, f21 = d20 * b01 + d21 * b11 + d22 * b21, f22 = d20 * b02 + d21 * b12 + d22 * b22;
+            double Vi = -Vp[i];
             double det = f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20) + f02 * (f10 * f21 - f11 * f20);
-            inverted += (det <= 0.0) & (V[i] != 0.0);  /* padding lanes have V = 0 */
-            double qw = Q[0][i], qx = Q[1][i], qy = Q[2][i], qz = Q[3][i];
+            inverted += (det <= 0.0) & (Vi != 0.0);  /* padding lanes have V = 0 */
+            double qw = Qp[0 * B + i], qx = Qp[1 * B + i], qy = Qp[2 * B + i], qz = Qp[3 * B + i];
             for (int it = 0; it < POLAR_ITERATIONS; it++) {  /* warm-started polar iteration */
                 double r00 = 1.0 - 2.0 * (qy * qy + qz * qz), r01 = 2.0 * (qx * qy - qw * qz), r02 = 2.0 * (qx * qz + qw * qy);
                 double r10 = 2.0 * (qx * qy + qw * qz), r11 = 1.0 - 2.0 * (qx * qx + qz * qz), r12 = 2.0 * (qy * qz - qw * qx);
@@ -63,7 +75,7 @@ static int forces_range(const double *restrict x, const int32_t *restrict el, co
                 double inv = 1.0 / sqrt(nw * nw + nx * nx + ny * ny + nz * nz);
                 qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv;
             }
-            Q[0][i] = qw; Q[1][i] = qx; Q[2][i] = qy; Q[3][i] = qz;
+            Qp[0 * B + i] = qw; Qp[1 * B + i] = qx; Qp[2 * B + i] = qy; Qp[3 * B + i] = qz;
             double r00 = 1.0 - 2.0 * (qy * qy + qz * qz), r01 = 2.0 * (qx * qy - qw * qz), r02 = 2.0 * (qx * qz + qw * qy);
             double r10 = 2.0 * (qx * qy + qw * qz), r11 = 1.0 - 2.0 * (qx * qx + qz * qz), r12 = 2.0 * (qy * qz - qw * qx);
             double r20 = 2.0 * (qx * qz - qw * qy), r21 = 2.0 * (qy * qz + qw * qx), r22 = 1.0 - 2.0 * (qx * qx + qy * qy);
@@ -73,18 +85,17 @@ static int forces_range(const double *restrict x, const int32_t *restrict el, co
             double s12 = 0.5 * ((r01 * f02 + r11 * f12 + r21 * f22) + (r02 * f01 + r12 * f11 + r22 * f21));
             double tr = lam * (s00 + s11 + s22 - 3.0), m2 = 2.0 * mu;
             double t00 = m2 * (s00 - 1.0) + tr, t11 = m2 * (s11 - 1.0) + tr, t22 = m2 * (s22 - 1.0) + tr;
-            double t01 = m2 * s01, t02 = m2 * s02, t12 = m2 * s12, Vi = V[i];
+            double t01 = m2 * s01, t02 = m2 * s02, t12 = m2 * s12;
             double p00 = Vi * (r00 * t00 + r01 * t01 + r02 * t02), p01 = Vi * (r00 * t01 + r01 * t11 + r02 * t12), p02 = Vi * (r00 * t02 + r01 * t12 + r02 * t22);
             double p10 = Vi * (r10 * t00 + r11 * t01 + r12 * t02), p11 = Vi * (r10 * t01 + r11 * t11 + r12 * t12), p12 = Vi * (r10 * t02 + r11 * t12 + r12 * t22);
             double p20 = Vi * (r20 * t00 + r21 * t01 + r22 * t02), p21 = Vi * (r20 * t01 + r21 * t11 + r22 * t12), p22 = Vi * (r20 * t02 + r21 * t12 + r22 * t22);
-            double b00 = M[0][i], b01 = M[1][i], b02 = M[2][i], b10 = M[3][i], b11 = M[4][i], b12 = M[5][i], b20 = M[6][i], b21 = M[7][i], b22 = M[8][i];
             H[0][i] = p00 * b00 + p01 * b01 + p02 * b02; H[1][i] = p10 * b00 + p11 * b01 + p12 * b02; H[2][i] = p20 * b00 + p21 * b01 + p22 * b02;
             H[3][i] = p00 * b10 + p01 * b11 + p02 * b12; H[4][i] = p10 * b10 + p11 * b11 + p12 * b12; H[5][i] = p20 * b10 + p21 * b11 + p22 * b12;
             H[6][i] = p00 * b20 + p01 * b21 + p02 * b22; H[7][i] = p10 * b20 + p11 * b21 + p12 * b22; H[8][i] = p20 * b20 + p21 * b21 + p22 * b22;
         }
         for (int i = 0; i < n; i++) {
             int64_t e = base + i;
-            for (int k = 0; k < 4; k++) q[4 * e + k] = Q[k][i];
+            if (!blocked) for (int k = 0; k < 4; k++) q[4 * e + k] = Q[k][i];
             const int32_t *t = el + 4 * e;
             for (int c = 0; c < 3; c++) {
                 double h0 = H[c][i], h1 = H[3 + c][i], h2 = H[6 + c][i];
@@ -95,6 +106,21 @@ static int forces_range(const double *restrict x, const int32_t *restrict el, co
     }
     return inverted;
 }
+
+static int forces_range(const double *x, const int32_t *el, const double *Bm, const double *vol, double mu,
+                        double lam, double *q, double *f, int64_t e0, int64_t e1)
+{
+    return forces_impl(x, el, Bm, vol, mu, lam, q, f, e0, e1, 0);
+}
+
+static int forces_blocked(const double *x, const int32_t *el, const double *Bm, const double *vol, double mu,
+                          double lam, double *q, double *f, int64_t e0, int64_t e1)
+{
+    return forces_impl(x, el, Bm, vol, mu, lam, q, f, e0, e1, 1);
+}
+
+/* The element block the 3D step reads its element data in (Body lays them out so). */
+int block_size(void) { return B; }
 
 /* All ne elements in nt chunks, one per thread: thread t zeroes its own force buffer
  * fbuf[t] (nt, nv, 3) and adds its chunk's forces there, so no two threads write one vertex. */
@@ -148,7 +174,8 @@ static int forces_range_2d(const double *restrict x, const int32_t *restrict el,
 }
 
 /* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
- * (rows: vertices or elements), dim = 2 or 3 columns. */
+ * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
+ * (forces_impl). */
 typedef struct {
     int64_t dim, nv, ne, nt, n_sub, n_rotors, n_boxes;
     double dt, mu, lam, damping, deform_damping, gravity, ground, friction;
@@ -343,13 +370,15 @@ int advance(const Step *s, double *vmax2)
     #pragma omp parallel num_threads(nt) reduction(max:vmax)
     {
         const int64_t t = omp_get_thread_num();
-        const int64_t ec = (s->ne + nt - 1) / nt, e0 = t * ec, e1 = e0 + ec < s->ne ? e0 + ec : s->ne;
+        /* 3D: whole blocks per thread (the element data is blocked, see forces_impl) */
+        const int64_t ec = d == 3 ? ((s->ne + B - 1) / B + nt - 1) / nt * B : (s->ne + nt - 1) / nt;
+        const int64_t e0 = t * ec, e1 = e0 + ec < s->ne ? e0 + ec : s->ne;
         const int64_t vc = (nv + nt - 1) / nt, v0 = t * vc, v1 = v0 + vc < nv ? v0 + vc : nv;
         double *f = s->fbuf + d * nv * t, *my = sums + S_STRIDE * t;
         for (int64_t sub = 0; sub < s->n_sub; sub++) {
             memset(f, 0, (size_t)(d * nv) * sizeof(double));
             inv[t] = e0 >= e1 ? 0
-                   : d == 3 ? forces_range(s->x, s->el, s->Bm, s->vol, s->mu, s->lam, s->q, f, e0, e1)
+                   : d == 3 ? forces_blocked(s->x, s->el, s->Bm, s->vol, s->mu, s->lam, s->q, f, e0, e1)
                             : forces_range_2d(s->x, s->el, s->Bm, s->vol, s->mu, s->lam, f, e0, e1);
             if (t == 0) rotor_forces(s);
             #pragma omp barrier

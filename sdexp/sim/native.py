@@ -84,7 +84,21 @@ def library():
     lib.corotated_forces_3d.argtypes = list(SIGNATURE._argtypes_)
     lib.advance.restype = ctypes.c_int
     lib.advance.argtypes = [ctypes.POINTER(Step), ctypes.POINTER(ctypes.c_double)]
+    lib.block_size.restype = ctypes.c_int
     return lib
+
+
+def blocked(rows, block: int, pad=0.0):
+    """(n, ...) element rows in kernels.c's blocked layout (ceil(n / block), ..., block), the last
+    block padded with ``pad`` (a value, or a row)."""
+    import numpy as np
+    rows = np.asarray(rows)
+    n = len(rows)
+    nb = -(-n // block)
+    out = np.empty((nb * block,) + rows.shape[1:], rows.dtype)
+    out[:n] = rows
+    out[n:] = pad
+    return np.ascontiguousarray(np.moveaxis(out.reshape((nb, block) + rows.shape[1:]), 1, -1))
 
 
 def corotated_kernel_3d():

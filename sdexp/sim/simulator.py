@@ -100,7 +100,7 @@ class Simulator:
         self.body.x[:] = x
         self.body.v[:] = v
         if rotation is not None and self.drone.dim == 3:
-            self.body.q[:] = quat_from_matrix(np.asarray(rotation))
+            self.body.set_rotation(quat_from_matrix(np.asarray(rotation)))
         self.t = float(t)
         for u in history:
             self.applied = self._actuate(u, noisy=False)

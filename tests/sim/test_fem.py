@@ -171,7 +171,7 @@ def test_compiled_step_matches_the_numba_reference(dim, threads):
     scale = np.abs(ref.x).max()
     np.testing.assert_allclose(c.x, ref.x, atol=1e-10 * scale)
     np.testing.assert_allclose(c.v, ref.v, atol=1e-9 * np.abs(ref.v).max())
-    np.testing.assert_allclose(c.q, ref.q, atol=1e-10)
+    np.testing.assert_allclose(c.quaternions(), ref.quaternions(), atol=1e-10)
     np.testing.assert_allclose(c.dirs, ref.dirs, atol=1e-10)
 
 
