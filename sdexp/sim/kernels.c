@@ -2,9 +2,10 @@
  * math; fem.corotated_range_3d/_2d are the same computation in numba) and whole control steps
  * of substeps (advance; integrator.advance is its numba reference and fallback).
  *
- * Elements are processed in blocks of B: a scalar gather of F = Ds Dm^-1 into structure-of-
- * arrays buffers, one branch-free loop the compiler turns into SIMD, a scalar scatter. This
- * layout is what lets gcc vectorise it; numba's LLVM keeps the same arithmetic scalar.
+ * Elements are processed in blocks of B: a scalar gather of the edge vectors Ds into
+ * structure-of-arrays buffers, one branch-free loop the compiler turns into SIMD (F = Ds Dm^-1
+ * onwards), a scalar scatter of the forces. This layout is what lets gcc vectorise it; numba's
+ * LLVM keeps the same arithmetic scalar.
  * Threads are OpenMP's: a region costs a microsecond or two, a numba parallel region ten. */
 #include <math.h>
 #include <stdlib.h>
@@ -21,8 +22,9 @@ static int omp_get_thread_num(void) { return 0; }
  * quaternions by POLAR_ITERATIONS polar iterations. Returns the inverted count.
  * Two layouts of the element data: rows (Bm (ne, 3, 3), vol (ne), q (ne, 4)), gathered into
  * the block's lanes first; or blocked (Bm (nb, 9, B), vol (nb, B), q (nb, 4, B), el padded to
- * nb B rows, e0 a multiple of B), read in place by the SIMD loop: no gather or scatter of q,
- * 20% faster on the flower. The SIMD loop reads both through the same [k B + i] pointers. */
+ * nb B rows, e0 a multiple of B), read in place by the SIMD loop: no gather or scatter of q
+ * (the flower's step ~20-40% faster, README Speed). The SIMD loop reads both through the same
+ * [k B + i] pointers. */
 static inline __attribute__((always_inline)) int forces_impl(const double *restrict x,
         const int32_t *restrict el, const double *restrict Bm, const double *restrict vol, double mu,
         double lam, double *restrict q, double *restrict f, int64_t e0, int64_t e1, const int blocked)
