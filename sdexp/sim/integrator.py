@@ -259,17 +259,19 @@ class Body:
         self.friction = friction
         self.thrust = np.zeros(m)
         self._lib = library() if compiled else None
-        self._elements = (fem.elems, fem.Bm, fem.vol) if d == 2 or self._lib is None else self._block()
+        self._elements = (fem.elems, fem.Bm, fem.vol)
+        if d == 3 and self._lib is not None:
+            self.q, self._elements = self._blocked()
         self._step = self._bind() if self._lib is not None else None
 
-    def _block(self):
-        """The compiled 3D step reads element data in blocks of SIMD lanes (kernels.c,
-        forces_impl): (el padded, Bm, vol), and q becomes blocked too."""
+    def _blocked(self):
+        """q and (el, Bm, vol) in the blocks of SIMD lanes the compiled 3D step reads in place
+        (kernels.c, forces_impl); el padded with vertex 0, q with the identity."""
         f, b = self.fem, self._lib.block_size()
-        self.q = blocked(self.q, b, pad=[1.0, 0.0, 0.0, 0.0])
-        el = np.zeros((self.q.shape[0] * b, 4), np.int32)
+        q = blocked(self.q, b, pad=[1.0, 0.0, 0.0, 0.0])
+        el = np.zeros((q.shape[0] * b, 4), np.int32)
         el[:f.n_elems] = f.elems
-        return el, blocked(f.Bm.reshape(f.n_elems, 9), b), blocked(f.vol, b)
+        return q, (el, blocked(f.Bm.reshape(f.n_elems, 9), b), blocked(f.vol, b))
 
     def set_rotation(self, q) -> None:
         """Every element's warm-start rotation to the quaternion q (w, x, y, z)."""

@@ -18,6 +18,8 @@ import warnings
 from functools import lru_cache
 from pathlib import Path
 
+import numpy as np
+
 SOURCE = Path(__file__).with_name("kernels.c")
 FLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-ffast-math", "-fopenmp",
          "-shared", "-fPIC"]
@@ -91,7 +93,6 @@ def library():
 def blocked(rows, block: int, pad=0.0):
     """(n, ...) element rows in kernels.c's blocked layout (ceil(n / block), ..., block), the last
     block padded with ``pad`` (a value, or a row)."""
-    import numpy as np
     rows = np.asarray(rows)
     n = len(rows)
     nb = -(-n // block)
