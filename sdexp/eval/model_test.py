@@ -7,7 +7,9 @@ dynamics? The two tests of the paper's "Testing the Linearized Networks".
     prediction, (pred_next - current) / alpha, is compared with the measured one,
     (next - current) / alpha, per channel: R^2 = 1 - SS_res / SS_tot in ``acceleration_r2.csv``
     (``r2_no_change`` is the R^2 of predicting zero acceleration, the copying network's score),
-    overlaid in ``acceleration.png``.
+    overlaid in ``acceleration.png``. Nets trained with ``model.horizon`` k > 1 (the controllers'
+    recipe) are tested on their own targets: alpha = k control intervals, on the held-out rows
+    whose k-frame target exists.
 
 (b) Rollout. A test flight of ``rollout_seconds`` under random thrust holds like the training
     data (``data.hold_seconds``, U[-Tmax, Tmax] per rotor): the longest held-out episode if one
@@ -18,9 +20,9 @@ dynamics? The two tests of the paper's "Testing the Linearized Networks".
     seed, up to ``flight_attempts``; the longest is kept and ``flight_seconds`` says its length).
     From the flight's first state and driven by its logged commands, three predictions:
       linearized   Eq. 5 relinearised every ``relinearize_every`` steps (5 = 20 Hz) at the current
-                   *predicted* state and command: x_{k+1} = x_k + alpha (f* + A (x_k - x*) + B (u_k - u*)),
+                   *predicted* state and command: x_{k+1} = x_k + dt (f* + A (x_k - x*) + B (u_k - u*)),
                    open loop for the whole flight (the paper's "Jacobian Matrix Update");
-      nonlinear    x_{k+1} = x_k + alpha f(x_k, u_k), open loop;
+      nonlinear    x_{k+1} = x_k + dt f(x_k, u_k), open loop (dt the control interval);
       horizon      both restarted from the true state every ``horizon_seconds``: short-term
                    accuracy, the median error over the windows against the time since the
                    restart (a diverged window counts as infinitely wrong), with a
@@ -42,9 +44,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from sdexp.errors import UserError
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
-from sdexp.model.training import DECOMPOSED, design, history_table, loss_plot, train_models
+from sdexp.model.training import DECOMPOSED, design, history_table, horizon_rows, loss_plot, train_models
 
 GROUPS = ("s", "e", "p")
 VEL = {"s": "s_dot", "e": "e_dot", "p": "p_dot"}
@@ -70,15 +71,17 @@ def channel_names(sizes: dict) -> dict[str, list[str]]:
 # ------------------------------------------------------------------------------ (a) acceleration
 
 @torch.no_grad()
-def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float):
-    """Per-channel R^2 of the reconstructed acceleration on the given transitions; returns
-    (table, {group: (true accel, predicted accel)}) with rows in val_idx order."""
+def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon: int = 1):
+    """Per-channel R^2 of the reconstructed acceleration on the given transitions (those whose
+    ``horizon``-frame target exists, ``alpha`` apart); returns (table, {group: (true accel,
+    predicted accel)}, the dataset rows they are of, sorted)."""
     names = channel_names(state_sizes(data))
     rows, series = [], {}
+    used = np.intersect1d(horizon_rows(data.arrays, horizon), val_idx)
     for spec, group in zip(DECOMPOSED, GROUPS):
         if spec.name not in trained.nets:
             continue
-        X, Y, base = design(data, spec, val_idx)
+        X, Y, base = design(data, spec, val_idx, horizon)
         net = trained.nets[spec.name]
         pred = np.concatenate([net(torch.from_numpy(X[i:i + 65536])).numpy() for i in range(0, len(X), 65536)])
         cur = X[:, base]
@@ -92,20 +95,22 @@ def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float):
                          "r2": 1 - ss_res[j] / ss_tot[j], "r2_no_change": 1 - ss_zero[j] / ss_tot[j],
                          "mae_accel": float(np.abs(a_pred[:, j] - a_true[:, j]).mean()),
                          "std_accel": float(a_true[:, j].std()), "samples": len(X)})
-    return pd.DataFrame(rows), series
+    return pd.DataFrame(rows), series, used
 
 
-def acceleration_plot(data, val_idx, series, table, alpha: float, seconds: float, path: Path) -> None:
+def acceleration_plot(data, rows, series, table, dt: float, seconds: float, path: Path) -> None:
+    """``rows``: the dataset rows of ``series`` (acceleration_test); ``seconds`` of the longest
+    held-out episode, ``dt`` between rows."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ep = data.arrays["episode"][val_idx]
+    ep = data.arrays["episode"][rows]
     ids, counts = np.unique(ep, return_counts=True)
     longest = ids[np.argmax(counts)]
     sel = np.flatnonzero(ep == longest)
-    sel = sel[np.argsort(data.arrays["t"][val_idx][sel])][: max(2, int(round(seconds / alpha)))]
-    t = data.arrays["t"][val_idx][sel]
+    sel = sel[np.argsort(data.arrays["t"][rows][sel])][: max(2, int(round(seconds / dt)))]
+    t = data.arrays["t"][rows][sel]
     groups = list(series)
     ncol = 3
     fig, axes = plt.subplots(len(groups), ncol, figsize=(12, 2.6 * len(groups)), squeeze=False)
@@ -126,7 +131,7 @@ def acceleration_plot(data, val_idx, series, table, alpha: float, seconds: float
             if r == len(groups) - 1:
                 ax.set_xlabel("t (s)")
     axes[0, 0].legend(fontsize=8)
-    fig.suptitle("Held-out episode: measured acceleration vs (predicted next velocity - velocity) / alpha")
+    fig.suptitle("Held-out episode: measured acceleration vs (predicted velocity - velocity) / alpha")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -148,7 +153,7 @@ def _episode_from_data(data, val_idx, steps: int):
 
 
 def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
-    """A test flight under random thrust holds, read through the sensors only:
+    """A test flight under random thrust holds drawn as the data were, read through the sensors only:
     (X (T+1, n) decomposed states, U (T, m) commands, seed used). A flight that fails is
     retried with the next seed; the longest one is kept."""
     from tqdm import tqdm
@@ -157,10 +162,15 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     from sdexp.sim.sensors import decompose
     from sdexp.sim.simulator import Simulator
 
+    from sdexp.sim.geometry import rest_hover_thrust
+
     drone = build_drone(cfg.drone, cfg.cache_dir)
     dt = float(cfg.sim.control_dt)
     steps = int(round(seconds / dt))
     hold = max(1, int(round(float(cfg.data.hold_seconds) / dt)))
+    # the draw of the data recipe (sdexp.model.generate): U[lo, hi] x Tmax, around hover or not
+    lo, hi = (drone.max_thrust * f for f in cfg.data.thrust_range)
+    centre = rest_hover_thrust(drone, float(cfg.sim.gravity)) if cfg.data.get("around_hover") else 0.0
     best = None
     for attempt in range(attempts):
         sim = Simulator(drone, cfg.sim, cfg.noise, seed + attempt)
@@ -169,7 +179,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
         us = []
         for k in tqdm(range(steps), desc="test flight", leave=False, disable=None):
             if k % hold == 0:
-                u = rng.uniform(-drone.max_thrust, drone.max_thrust, drone.num_rotors)
+                u = centre + rng.uniform(lo, hi, drone.num_rotors)
             r = sim.step(u)
             if not sim.alive:
                 print(f"sdexp: test flight {attempt}: {sim.failure.reason} at {sim.failure.time:.2f} s, retrying")
@@ -201,13 +211,13 @@ def input_jacobian_check(cfg, dyn: LearnedDynamics, steps: tuple[int, ...] = (1,
     u0 = np.full(dyn.m, float(cfg.drone.mass) * float(cfg.sim.gravity) / dyn.m)
     x0 = Simulator(drone, cfg.sim, quiet).state(noisy=False).x
     _, _, B_learned = dyn.linearize(x0, u0)
-    alpha = float(cfg.sim.control_dt)
+    dt = float(cfg.sim.control_dt)
 
     def mean_acceleration(u, k):
         sim = Simulator(drone, cfg.sim, quiet)
         for _ in range(k):
             sim.step(u)
-        return (sim.state(noisy=False).x - x0) / (k * alpha)
+        return (sim.state(noisy=False).x - x0) / (k * dt)
 
     rows = []
     for k in steps:
@@ -337,12 +347,10 @@ def speed_table(data, trained) -> pd.DataFrame:
 
 
 def run(cfg, out_dir: Path) -> dict:
-    if int(cfg.model.horizon) != 1:
-        # (a) compares one-frame velocity changes row by row with the held-out transitions
-        raise UserError(f"model_test tests the paper's one-frame networks: model.horizon = "
-                        f"{cfg.model.horizon}; run it with model.horizon=1 (its config's default)")
     p = cfg.experiment.params
-    alpha = float(cfg.sim.control_dt)
+    dt = float(cfg.sim.control_dt)                  # between rows, commands and rollout steps
+    horizon = int(cfg.model.horizon)
+    alpha = dt * horizon                            # between a net's input and its target
     data, trained, dyn = prepare(cfg)
     out_dir = Path(out_dir)
     history_table(trained).to_csv(out_dir / "training.csv", index=False)
@@ -356,9 +364,9 @@ def run(cfg, out_dir: Path) -> dict:
 
     # (a) acceleration on held-out episodes
     _, val_idx = data.split(float(cfg.data.validation_fraction), int(cfg.seed))
-    table, series = acceleration_test(data, trained, val_idx, alpha)
+    table, series, rows = acceleration_test(data, trained, val_idx, alpha, horizon)
     table.to_csv(out_dir / "acceleration_r2.csv", index=False)
-    acceleration_plot(data, val_idx, series, table, alpha, float(p.get("plot_seconds", 5.0)),
+    acceleration_plot(data, rows, series, table, dt, float(p.get("plot_seconds", 5.0)),
                       out_dir / "acceleration.png")
     for g, grp in table.groupby("group", sort=False):
         metrics[f"r2_mean_{VEL[g]}"] = float(grp["r2"].mean())
@@ -377,7 +385,7 @@ def run(cfg, out_dir: Path) -> dict:
     # (b) rollout of the linearized model against a test flight
     seconds = float(p.get("rollout_seconds", 70.0))
     every = int(p.get("relinearize_every", 5))
-    steps = int(round(seconds / alpha))
+    steps = int(round(seconds / dt))
     found = _episode_from_data(data, val_idx, steps)
     if found is not None:
         X_true, U = found
@@ -387,11 +395,11 @@ def run(cfg, out_dir: Path) -> dict:
                                                int(p.get("flight_attempts", 5)))
         metrics["flight_source"] = f"simulated, seed {used_seed}"
     T = len(U)
-    t = alpha * np.arange(T + 1)
-    metrics["flight_seconds"] = float(T * alpha)
+    t = dt * np.arange(T + 1)
+    metrics["flight_seconds"] = float(T * dt)
     X_lin, lin_times = rollout(dyn, X_true[0], U, every, linear=True)
     X_nl, _ = rollout(dyn, X_true[0], U, every, linear=False)
-    restart = max(1, int(round(float(p.get("horizon_seconds", 1.0)) / alpha)))
+    restart = max(1, int(round(float(p.get("horizon_seconds", 1.0)) / dt)))
     X_hz, _ = rollout(dyn, X_true[0], U, every, linear=True, X_true=X_true, restart=restart)
     X_hz_nl, _ = rollout(dyn, X_true[0], U, every, linear=False, X_true=X_true, restart=restart)
     errs = {"linearized": state_errors(dyn, X_lin, X_true), "nonlinear": state_errors(dyn, X_nl, X_true)}
@@ -406,7 +414,7 @@ def run(cfg, out_dir: Path) -> dict:
     const_vel = X_true.copy()
     for k0 in range(0, T, restart):
         k1 = min(k0 + restart, T)
-        tau = alpha * np.arange(k1 - k0 + 1)[:, None]
+        tau = dt * np.arange(k1 - k0 + 1)[:, None]
         x0 = X_true[k0]
         seg = np.repeat(x0[None], k1 - k0 + 1, axis=0)
         for blk, vel in VEL.items():
@@ -418,7 +426,7 @@ def run(cfg, out_dir: Path) -> dict:
     for j in range(1, restart + 1):
         # predictions j steps after a restart: the state at index k0 + j
         idx = np.arange(j, T + 1, restart)
-        row = {"tau": j * alpha}
+        row = {"tau": j * dt}
         for mode, e in hz.items():
             for blk, v in e.items():
                 w = v[idx]
@@ -430,14 +438,14 @@ def run(cfg, out_dir: Path) -> dict:
 
     for mode, e in errs.items():
         for sec in (1.0, 10.0, 60.0):
-            k = int(round(sec / alpha))
+            k = int(round(sec / dt))
             if k <= T:
                 for blk in ("s", "e", "p", "p_dot"):
                     if blk in e:
                         v = e[blk][k]
                         metrics[f"rollout_{mode}_{blk}_err_{int(sec)}s"] = float(v) if np.isfinite(v) else None
         finite = np.flatnonzero(~np.isfinite(e["p"]))
-        metrics[f"rollout_{mode}_diverged_at"] = float(finite[0] * alpha) if len(finite) else None
+        metrics[f"rollout_{mode}_diverged_at"] = float(finite[0] * dt) if len(finite) else None
     last = horizon.iloc[-1]
     for blk in ("s", "e", "p", "p_dot"):
         for mode in hz:
@@ -447,7 +455,7 @@ def run(cfg, out_dir: Path) -> dict:
     ends = np.arange(restart, T + 1, restart)
     for mode, X in (("linearized", X_hz), ("nonlinear", X_hz_nl)):
         metrics[f"horizon_diverged_fraction_{mode}"] = float(np.mean(~np.isfinite(X[ends, 0]))) if len(ends) else None
-    metrics["horizon_seconds"] = restart * alpha
+    metrics["horizon_seconds"] = restart * dt
     spread = state_errors(dyn, np.broadcast_to(np.nanmean(X_true, 0), X_true.shape), X_true)
     for blk in ("s", "e", "p_dot"):
         if blk in spread:

@@ -158,7 +158,15 @@ def test_dynamics_from_trained_nets_and_rollouts():
         np.testing.assert_allclose(nxt, trained.nets["d"](torch.from_numpy(X)).numpy(), rtol=1e-4, atol=1e-5)
     # R^2 of the reconstructed acceleration is high on a learnable system
     _, val = data.split(0.2, 0)
-    table, _ = acceleration_test(data, trained, val, ALPHA)
+    table, _, rows = acceleration_test(data, trained, val, ALPHA)
+    np.testing.assert_array_equal(rows, val)
+    # k-frame targets: only the rows that have one (same episode, same held command), over k frames
+    from dataclasses import replace
+    from sdexp.model.training import horizon_rows
+    held = replace(data, arrays={**data.arrays, "u": data.arrays["u"][np.arange(len(data)) // 10 * 10]})
+    _, series3, rows3 = acceleration_test(held, trained, val, 3 * ALPHA, 3)
+    np.testing.assert_array_equal(rows3, np.intersect1d(horizon_rows(held.arrays, 3), val))
+    assert 0.7 * len(val) < len(rows3) < len(val) and len(series3["s"][0]) == len(rows3)
     assert len(table) == 2 + 1 + 2 and table["r2"].min() > 0.5 and (table["r2_no_change"] < 0.1).all()
     # relinearising every step follows the nonlinear model closely over a short horizon
     U = np.random.default_rng(0).uniform(-1, 1, (20, 3))
@@ -230,8 +238,13 @@ def test_hand_reverse_pass_equals_torch_autograd(base):
         np.testing.assert_allclose(J, J_ref, rtol=1e-10, atol=1e-12)
 
 
-def test_model_test_refuses_multi_frame_networks(tmp_path, cache_dir):
-    from sdexp.errors import UserError
-
-    with pytest.raises(UserError, match="model.horizon"):
-        _run_or_skip(tmp_path, cache_dir, "experiment=model_test", "model.horizon=5")
+def test_model_test_tests_multi_frame_networks_on_their_own_targets(tmp_path, cache_dir):
+    """model.horizon = 5 (the controllers' recipe): alpha is 5 control intervals, only rows with
+    a 5-frame target are scored, and the rollout still steps one control interval."""
+    metrics = _run_or_skip(tmp_path, cache_dir, "experiment=model_test", "model.horizon=5",
+                           "experiment.params.rollout_seconds=1.5", "experiment.params.horizon_seconds=0.2",
+                           "experiment.params.plot_seconds=0.5")
+    table = pd.read_csv(tmp_path / "acceleration_r2.csv")
+    assert np.isfinite(table["r2"]).all() and (tmp_path / "acceleration.png").exists()
+    assert metrics["flight_seconds"] == pytest.approx(1.5)
+    assert np.allclose(np.diff(pd.read_csv(tmp_path / "rollout.csv")["t"]), 0.01)
