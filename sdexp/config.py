@@ -133,6 +133,7 @@ class ControlConfig:
     kd: float = 0.0001
     n: int = 10                     # relinearise every n control steps (100/n Hz)
     relinearize: bool = True        # false: linearise once at a given operating point
+    feedforward: bool = False       # ours: thrust that holds the goal's bends (not in the paper; relinearizing.py)
     riccati: str = "continuous"     # continuous (the paper) | discrete (gain of the 100 Hz sampled loop)
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 

@@ -244,3 +244,49 @@ def test_a_broken_linearisation_is_an_lqr_failure():
     ctl.reset(Task(start=np.zeros(2), target=[0.0, 0.0], seconds=1.0, n_s=0))
     with pytest.raises(LqrFailure):
         ctl.act(0.0, state_of(dyn, np.zeros(dyn.n)))
+
+
+class BendingTrirotor(PlanarCopter):
+    """PlanarCopter with a third, central rotor whose thrust bends the body against the outer
+    two: s_ddot = -16 s - 4 s_dot + 0.5 (u0 + u1 - 2 u2). A bend s* is held at rest by
+    u0 = u1 = a, u2 = c with 2 a + c = m g and a - c = 16 s*: one spare rotor for one bend."""
+
+    def __init__(self):
+        super().__init__(nonlinear=True, n_s=1)
+        self.m = 3
+        self.slices["u"] = slice(self.n, self.n + 3)
+
+    def f(self, x, u):
+        u = np.asarray(u, float)
+        out = super().f(x, [u[0] + u[2] / 2, u[1] + u[2] / 2])
+        sl = self.slices
+        out[sl["s_dot"]] = -16.0 * x[sl["s"]] - 4.0 * x[sl["s_dot"]] + 0.5 * (u[0] + u[1] - 2 * u[2])
+        return out
+
+    def linearize(self, x, u):
+        h = 1e-6
+        A = np.stack([(self.f(x + h * e, u) - self.f(x - h * e, u)) / (2 * h) for e in np.eye(self.n)], 1)
+        B = np.stack([(self.f(x, u + h * e) - self.f(x, u - h * e)) / (2 * h) for e in np.eye(3)], 1)
+        return self.f(x, u), A, B
+
+
+def test_feedforward_holds_a_bend_target_with_a_spare_rotor():
+    dyn = BendingTrirotor()
+    s_goal = 0.1
+    task = Task(start=np.zeros(2), target=np.zeros(2), seconds=20.0, n_s=1, bend_times=[0.0], bend_targets=[[s_goal]])
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=1.0, kd=0.0, n=5, max_thrust=TMAX, feedforward=True)
+    ctl.reset(task)
+    # the thrust that holds the bend at rest is the analytic one, and u_oper starts there
+    a = (MASS * G + 16 * s_goal) / 3
+    u_eq = [a, a, a - 16 * s_goal]
+    np.testing.assert_allclose(ctl.equilibrium_thrust(task.goal(0.0).x, np.zeros(3)), u_eq, atol=1e-6)
+    ctl.act(0.0, state_of(dyn, np.zeros(dyn.n)))
+    np.testing.assert_allclose(ctl.u_oper, u_eq, atol=1e-6)
+    ctl.reset(task)
+    X, U = fly(dyn, ctl, np.zeros(dyn.n), 20.0)
+    sl = dyn.slices
+    assert abs(X[-1, sl["s"]][0] - s_goal) < 1e-3
+    assert np.abs(X[-1, sl["p"]]).max() < 1e-2 and abs(X[-1, sl["e"]][0]) < 1e-3
+    np.testing.assert_allclose(U[-1], u_eq, atol=0.02)
+    with pytest.raises(ValueError, match="feedforward"):
+        RelinearizingLQR(dyn, weights(dyn), 2.0, 1.0, 0.0, 5, TMAX, relinearize=False, feedforward=True)
