@@ -56,6 +56,8 @@ class RelinearizingLQR:
         if feedforward and not relinearize:
             raise ValueError("feedforward needs relinearize=True (it re-solves at every relinearisation)")
         self.feedforward = feedforward
+        # the velocity rows of f: zero at rest, what equilibrium_thrust solves for
+        self._rates = np.concatenate([np.arange(dyn.n)[dyn.slices[k]] for k in ("s_dot", "e_dot", "p_dot")])
         self.dyn, self.kp, self.kd, self.n, self.max_thrust = dyn, kp, kd, int(n), max_thrust
         self.Q, self.R = np.diag(q_diag), r * np.eye(dyn.m)
         self.relinearize = relinearize
@@ -86,9 +88,7 @@ class RelinearizingLQR:
     def equilibrium_thrust(self, x: np.ndarray, u: np.ndarray, steps: int = 2) -> np.ndarray:
         """The thrust (within +-Tmax) closest to holding state x at rest under the learned model:
         Gauss-Newton from u on the velocity rows of f(x, u) = 0 (least squares)."""
-        sl = self.dyn.slices
-        rows = np.r_[np.arange(self.dyn.n)[sl["s_dot"]], np.arange(self.dyn.n)[sl["e_dot"]],
-                     np.arange(self.dyn.n)[sl["p_dot"]]]
+        rows = self._rates
         u = np.asarray(u, dtype=float).copy()
         for _ in range(steps):
             f0, _, B = self.dyn.linearize(x, u)
@@ -109,12 +109,11 @@ class RelinearizingLQR:
             goal = self.task.goal(t).x
             self.x_wp = x + self.kp * self._diff(goal, x) + self.kd * x_dot
             if self.feedforward:
-                sl = self.dyn.slices
                 u_int = np.zeros_like(self.u) if self.u_ff is None else self.u - self.u_ff
                 self.u_ff = self.equilibrium_thrust(goal, self.u if self.u_ff is None else self.u_ff)
                 self.u_oper = self.u_ff + u_int
                 for key in ("s", "s_dot"):
-                    self.x_wp[sl[key]] = goal[sl[key]]
+                    self.x_wp[self.dyn.slices[key]] = goal[self.dyn.slices[key]]
         self.k += 1
         self.u = np.clip(self.u_oper - self.K @ self._diff(x, self.x_wp), -self.max_thrust, self.max_thrust)
         return self.u

@@ -159,7 +159,8 @@ def angle_columns_cached(drone) -> np.ndarray:
 def predict_windows(sim, bend: BendMap, flight, starts, start_rows, horizon: int, history: int) -> np.ndarray:
     """(W, horizon, C) predicted channels for windows starting at rows ``starts``: re-initialise
     at the measured state ``start_rows`` (W, C), replay the ``history`` commands before it
-    through the actuation chain, then step with the logged commands. A window whose simulation fails keeps its last state."""
+    through the actuation chain, then step with the logged commands. A window whose simulation
+    fails keeps its last state."""
     C = flight.y.shape[1]
     layout = sim.drone.layout
     bend = bend.stiffer(float(np.mean(sim.fem.mu / sim.drone.fem.mu)))

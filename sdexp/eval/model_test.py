@@ -45,7 +45,7 @@ import pandas as pd
 import torch
 
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
-from sdexp.model.training import DECOMPOSED, design, history_table, horizon_rows, loss_plot, train_models
+from sdexp.model.training import DECOMPOSED, design, design_rows, history_table, loss_plot, train_models
 
 GROUPS = ("s", "e", "p")
 VEL = {"s": "s_dot", "e": "e_dot", "p": "p_dot"}
@@ -77,7 +77,7 @@ def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon:
     predicted accel)}, the dataset rows they are of, sorted)."""
     names = channel_names(state_sizes(data))
     rows, series = [], {}
-    used = np.intersect1d(horizon_rows(data.arrays, horizon), val_idx)
+    used = design_rows(data, val_idx, horizon)
     for spec, group in zip(DECOMPOSED, GROUPS):
         if spec.name not in trained.nets:
             continue

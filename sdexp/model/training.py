@@ -109,6 +109,12 @@ def horizon_rows(data, horizon: int) -> np.ndarray:
     return i[ok]
 
 
+def design_rows(data, idx: np.ndarray | None = None, horizon: int = 1) -> np.ndarray:
+    """The rows (of ``idx``, or all; sorted) that ``design`` keeps: those with a ``horizon``-frame target."""
+    rows = horizon_rows(_arrays(data), horizon)
+    return rows if idx is None else np.intersect1d(rows, idx)
+
+
 def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1
            ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(inputs (N, n_in), targets (N, n_out), base) for one network; base[j] is the input column
@@ -129,7 +135,7 @@ def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1
     if spec.current not in spec.inputs or cols[spec.inputs.index(spec.current)].shape[1] != Y.shape[1]:
         raise UserError(f"network {spec.name!r}: {spec.current} must be an input as wide as {spec.target}")
     base = list(range(offset, offset + Y.shape[1]))
-    rows = horizon_rows(a, horizon) if idx is None else np.intersect1d(horizon_rows(a, horizon), idx)
+    rows = design_rows(a, idx, horizon)
     return X[rows], Y[rows + horizon - 1], base
 
 

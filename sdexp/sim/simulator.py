@@ -67,7 +67,7 @@ class Simulator:
         self.threads = c.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
         self._delay_steps = int(round(n.delay / c.control_dt)) if n.enabled else 0
-        self._rest_extent = np.ptp(fem.rest, axis=0).max()
+        self._rest_extent = extent(fem.rest)
         self.body = None
         for e in self.effects:
             e.setup(self)
