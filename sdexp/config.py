@@ -82,6 +82,9 @@ class DataConfig:
     hold_seconds: float = 1.0       # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
     thrust_range: List[float] = field(default_factory=lambda: [-1.0, 1.0])  # U[lo, hi] x Tmax (paper: [-1, 1])
     around_hover: bool = False      # true: each hold draws hover thrust + U[lo, hi] x Tmax (paper: false)
+    deform_range: float = 0.0       # x Tmax: largest rotor offset of a held thrust pattern with no net
+                                    # rest-shape wrench (a deformation with level flight); 0: none (paper)
+    deform_hold_seconds: float = 1.0  # such a pattern is redrawn this often
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
     region: float = 30.0            # m from the start beyond which an episode restarts
     workers: int = 2                # simulation processes
@@ -233,6 +236,8 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
     _check(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
     _check(a.region > 0, "data.region", a.region, "> 0 m")
+    _check(0 <= a.deform_range <= 1, "data.deform_range", a.deform_range, "in [0, 1] x max_thrust")
+    _check(a.deform_hold_seconds > 0, "data.deform_hold_seconds", a.deform_hold_seconds, "> 0 s")
     _check(a.workers >= 1, "data.workers", a.workers, ">= 1")
     _check(0 < a.validation_fraction < 1, "data.validation_fraction", a.validation_fraction, "in (0, 1)")
     _check(m.hidden >= 1 and m.blocks >= 1, "model.hidden/blocks", (m.hidden, m.blocks), ">= 1")

@@ -4,7 +4,8 @@ Z width, folding the two wings that lie along Z (raising their bend angles to ``
 holding its Z position.
 
 Writes ``obstacle.csv`` (the flight), ``obstacle.png`` (wing pitch, Z width, Z deviation and the
-path through the gap seen from above) and metrics: wing pitch change (deg), width reduction (%),
+path through the gap seen from above) and metrics: wing pitch change (deg), the fold the body
+can hold at all (``fold_limit_deg``, see ``fold_limit``), width reduction (%),
 max Z deviation (m), whether the drone touched an obstacle, and ``passed``: beyond the blocks at
 the end, no contact, and inside the opening while level with them (round, over or under the
 blocks is not passing).
@@ -22,6 +23,35 @@ from sdexp.eval.flights import Setup, flight_table
 def folding_wings(r_hat: np.ndarray) -> np.ndarray:
     """Indices of the peripheral sensors on the wings that lie along Z (they set the Z width)."""
     return np.flatnonzero(np.abs(r_hat[:, 2]) > np.abs(r_hat[:, 0]))
+
+
+def fold_limit(drone, sim_cfg, noise_cfg, wings: np.ndarray, seconds: float = 3.0) -> float:
+    """The bend (deg) the folding wings hold, open loop and noise-free, under the strongest thrust
+    pattern that favours their rotors, puts no net force or torque on the rest shape and stays
+    within +-Tmax on top of the hover thrust: an upper bound on the fold any controller can ask
+    of this body (the least of the folding wings' bends after ``seconds``)."""
+    from omegaconf import OmegaConf
+    from sdexp.sim.geometry import rest_hover_thrust, rest_wrench_null_space, rigid_body
+    from sdexp.sim.sensors import decompose
+    from sdexp.sim.simulator import Simulator
+
+    fem = drone.fem
+    _, _, _, pos, _ = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(3))
+    reach = np.linalg.norm(pos[:, [0, 2]], axis=1)
+    on_wing = (np.abs(pos[:, 2]) > np.abs(pos[:, 0])) & (reach > 0.5 * reach.max())
+    null = rest_wrench_null_space(drone)
+    pattern = null @ (null.T @ on_wing.astype(float))
+    hover, tmax = rest_hover_thrust(drone, float(sim_cfg.gravity)), drone.max_thrust
+    room = np.where(pattern > 0, tmax - hover, -tmax - hover) / np.where(pattern == 0, np.inf, pattern)
+    u = hover + room[pattern != 0].min() * pattern
+    sim = Simulator(drone, OmegaConf.merge(sim_cfg, {"obstacles": []}),
+                    OmegaConf.merge(noise_cfg, {"enabled": False}), seed=0)
+    r = sim.reset()
+    for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
+        r = sim.step(u)
+        if not sim.alive:
+            break
+    return float(np.rad2deg(decompose(r, drone.layout).s[wings]).min())
 
 
 def touching(points: np.ndarray, boxes, margin: float = 1e-3) -> bool:
@@ -75,15 +105,16 @@ def run(cfg, out_dir: Path) -> dict:
     pitch = np.rad2deg(a["x"][:, dyn.slices["s"]][:, wings]) if len(wings) else np.zeros((len(a["t"]), 1))
     out = {**{f"flight_{k}": v for k, v in m.items()},
            "wing_pitch_change_deg": float(pitch.min(axis=1).max() - pitch[0].min()) if len(pitch) else 0.0,
+           "fold_limit_deg": fold_limit(setup.drone, cfg.sim, cfg.noise, wings) if len(wings) else 0.0,
            "width_reduction_percent": 100.0 * (1.0 - min(tab["width_z"]) / rest_width),
            "max_z_deviation_m": float(np.abs(a["x"][:, dyn.slices["p"]][:, 2]).max()),
            "hit_obstacle": hit,
            "passed": bool(not hit and through and a["x"][-1, dyn.slices["p"]][0] > gap_end and m["survived"])}
-    _plot(tab, pitch, boxes, rest_width, out_dir / "obstacle.png", cfg.drone.name, out)
+    _plot(tab, pitch, float(p.fold_deg), boxes, rest_width, out_dir / "obstacle.png", cfg.drone.name, out)
     return out
 
 
-def _plot(tab, pitch, boxes, rest_width: float, path: Path, drone: str, out: dict) -> None:
+def _plot(tab, pitch, fold_deg: float, boxes, rest_width: float, path: Path, drone: str, out: dict) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -92,6 +123,10 @@ def _plot(tab, pitch, boxes, rest_width: float, path: Path, drone: str, out: dic
     t = tab["t"]
     fig, axes = plt.subplots(1, 4, figsize=(18, 4))
     axes[0].plot(t, pitch)
+    axes[0].axhline(fold_deg, color="k", ls=":", lw=0.8, label="asked")
+    axes[0].axhline(out["fold_limit_deg"], color="tab:red", ls="--", lw=0.8,
+                    label="held by the strongest\nthrust pattern (open loop)")
+    axes[0].legend(fontsize=8)
     axes[0].set_ylabel("pitch of the folding wings (deg)")
     axes[1].plot(t, tab["width_z"], color="k")
     axes[1].axhline(rest_width, color="k", ls=":", lw=0.8)

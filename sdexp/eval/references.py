@@ -48,7 +48,7 @@ CHECKS = {
                              "relinearized_0_final_error": "upper"},
     "hover_deform": {"flight_survival_time": "lower", "max_position_deviation_cm": "upper"},
     "bench_control": {},   # timings: printed, never asserted
-    "obstacle": {"width_reduction_percent": "lower", "flight_survival_time": "lower", "max_z_deviation_m": "upper"},
+    "obstacle": {"fold_limit_deg": "equal", "width_reduction_percent": "lower", "flight_survival_time": "lower", "max_z_deviation_m": "upper"},
 }
 
 

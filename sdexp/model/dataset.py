@@ -96,6 +96,9 @@ def _data_spec(data) -> dict:
         spec["thrust_range"] = [lo, hi]
     if data.get("around_hover", False):
         spec["around_hover"] = True
+    if data.get("deform_range", 0.0) > 0:
+        spec["deform_range"] = float(data.deform_range)
+        spec["deform_hold_seconds"] = float(data.deform_hold_seconds)
     return spec
 
 

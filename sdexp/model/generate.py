@@ -9,7 +9,9 @@ same chunk generated longer.
 Every episode starts from ``Simulator.reset()`` (the undeformed drone at rest), every rotor holds
 a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw (the paper's
 recipe; ``data.thrust_range`` narrows the draw and ``data.around_hover`` centres it on the
-rest shape's minimum-norm hover thrust). One transition per
+rest shape's minimum-norm hover thrust; ``data.deform_range`` adds a thrust pattern held for
+``data.deform_hold_seconds`` that puts no net force or torque on the rest shape, so that the data
+visit held deformations in level flight). One transition per
 control step: the state decomposed from the readings before the step, the command, and the
 rates decomposed from the readings after it. An episode ends on a failure (the failing step is
 dropped: its readings are frozen, not measured), after the step that takes p further than
@@ -31,7 +33,7 @@ from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.rotations import euler_and_rates
-from sdexp.sim.geometry import rest_hover_thrust
+from sdexp.sim.geometry import rest_hover_thrust, rest_wrench_null_space
 from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many
@@ -93,6 +95,13 @@ def _simulator(spec: dict):
     return _CACHED["drone"], _CACHED["sim"]
 
 
+def _deformation(rng: np.random.Generator, patterns: np.ndarray, largest: float) -> np.ndarray:
+    """A thrust offset in the span of ``patterns`` (no net rest-shape wrench), random direction,
+    its largest rotor offset drawn from U[0, largest]."""
+    v = patterns @ rng.standard_normal(patterns.shape[1])
+    return rng.uniform(0.0, largest) * v / np.abs(v).max()
+
+
 def generate_chunk(spec: dict, chunk: int, n: int,
                    progress: Callable[[int], None] | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """Transitions ``[chunk * chunk_samples, chunk * chunk_samples + n)`` of the dataset, as
@@ -108,6 +117,14 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     tmax, m = drone.max_thrust, drone.num_rotors
     lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
     centre = rest_hover_thrust(drone, float(spec["sim"]["gravity"])) if data.get("around_hover") else 0.0
+    deform = tmax * float(data.get("deform_range", 0.0))
+    if deform > 0:
+        patterns = rest_wrench_null_space(drone)
+        if patterns.shape[1] == 0:
+            raise UserError(f"data.deform_range = {data['deform_range']}: drone {drone.name}'s "
+                            f"{m} rotors have no thrust pattern free of net force and torque; set it to 0")
+        deform_hold = max(1, int(round(data["deform_hold_seconds"] / dt)))
+    offset = 0.0
     w = widths(layout.dim, layout.n_s, m)
     out = {k: np.empty((n, v)) for k, v in w.items()}
     episode = np.empty(n, dtype=np.int32)
@@ -128,8 +145,10 @@ def generate_chunk(spec: dict, chunk: int, n: int,
         p0 = st.p.copy()
         start, k = i, 0
         while True:
+            if deform > 0 and k % deform_hold == 0:
+                offset = _deformation(rng, patterns, deform)
             if k % hold == 0:
-                u = centre + rng.uniform(lo, hi, m)
+                u = centre + offset + rng.uniform(lo, hi, m)
             r = sim.step(u)
             if not sim.alive:
                 ends[sim.failure.reason] += 1

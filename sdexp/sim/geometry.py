@@ -34,6 +34,16 @@ def rest_hover_thrust(drone, gravity: float) -> np.ndarray:
     return hover_thrust(mass, pos, dirs, gravity)
 
 
+def rest_wrench_null_space(drone) -> np.ndarray:
+    """Orthonormal basis (m, k) of the rotor thrust patterns that put no net force or torque on
+    the undeformed drone: they only deform it (flower: 9 rotors - 3 = 6 patterns; star 2)."""
+    fem = drone.fem
+    _, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
+    _, sv, vt = np.linalg.svd(wrench_matrix(pos, dirs))
+    rank = int(np.sum(sv > 1e-9 * sv[0]))
+    return np.ascontiguousarray(vt[rank:].T)
+
+
 def rotation_2d(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, -s], [s, c]])

@@ -73,3 +73,17 @@ def test_the_obstacle_opening_is_read_from_the_boxes():
     assert touching(np.array([[3.3, 0.0, 2.0]]), boxes) and not touching(np.array([[3.3, 0.0, 0.0]]), boxes)
     r_hat = np.array([[1.0, 0, 0], [0, 0, 1.0], [-1.0, 0, 0], [0, 0, -1.0]])
     assert list(folding_wings(r_hat)) == [1, 3]
+
+
+def test_the_fold_limit_is_inverse_in_the_modulus_while_the_bend_is_small(cache_dir):
+    """Linear elasticity: the bend a fixed load holds halves when the modulus doubles."""
+    from sdexp.eval.obstacle import fold_limit, folding_wings
+    from sdexp.sim.drone import build_drone
+
+    folds = []
+    for modulus in (24000.0, 48000.0):
+        cfg = make_cfg("experiment=obstacle", f"cache_dir={cache_dir}", f"drone.youngs_modulus={modulus}")
+        drone = build_drone(cfg.drone, cfg.cache_dir)
+        folds.append(fold_limit(drone, cfg.sim, cfg.noise, folding_wings(drone.layout.r_hat), seconds=2.0))
+    assert 1.0 < folds[0] < 10.0                      # a few degrees: the linear regime
+    assert folds[0] / folds[1] == pytest.approx(2.0, rel=0.03)
