@@ -3,6 +3,8 @@ import json
 import subprocess
 import sys
 
+import numpy as np
+import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
@@ -100,10 +102,13 @@ def test_cli_errors_are_short_and_list_choices(tmp_path):
 
 def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
     cfg = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[rod]",
-                   "experiment.params.seconds=0.05", "experiment.params.scaling_edges=[]",
+                   "experiment.params.seconds=0.05", "experiment.params.scaling_drone=rod",
+                   "experiment.params.scaling_edges=[0.12]", "experiment.params.scaling_seconds=0.25",
                    f"cache_dir={cache_dir}")
     metrics = run_experiment(cfg, tmp_path)
-    assert (tmp_path / "bench_sim.csv").exists() and (tmp_path / "bench_sim.png").exists()
+    table = pd.read_csv(tmp_path / "bench_sim.csv")
+    assert list(table["series"]) == ["drone", "scaling"] and table["elements"].iloc[1] < table["elements"].iloc[0]
+    assert np.isfinite(table["bend_deg"].iloc[1]) and (tmp_path / "bench_sim.png").exists()
     assert metrics["rod_realtime_factor"] > 0
     saved = OmegaConf.load(tmp_path / "config.yaml")
     assert saved.drone.name == "rod" and saved.cache_dir == cache_dir

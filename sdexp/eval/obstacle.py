@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, flight_table
+from sdexp.eval.statics import held_bend, outer_rotors
 
 
 def folding_wings(r_hat: np.ndarray) -> np.ndarray:
@@ -26,32 +27,11 @@ def folding_wings(r_hat: np.ndarray) -> np.ndarray:
 
 
 def fold_limit(drone, sim_cfg, noise_cfg, wings: np.ndarray, seconds: float = 3.0) -> float:
-    """The bend (deg) the folding wings hold, open loop and noise-free, under the strongest thrust
-    pattern that favours their rotors, puts no net force or torque on the rest shape and stays
-    within +-Tmax on top of the hover thrust: an upper bound on the fold any controller can ask
-    of this body (the least of the folding wings' bends after ``seconds``)."""
-    from omegaconf import OmegaConf
-    from sdexp.sim.geometry import rest_hover_thrust, rest_wrench_null_space, rigid_body
-    from sdexp.sim.sensors import decompose
-    from sdexp.sim.simulator import Simulator
-
-    fem = drone.fem
-    _, _, _, pos, _ = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(3))
-    reach = np.linalg.norm(pos[:, [0, 2]], axis=1)
-    on_wing = (np.abs(pos[:, 2]) > np.abs(pos[:, 0])) & (reach > 0.5 * reach.max())
-    null = rest_wrench_null_space(drone)
-    pattern = null @ (null.T @ on_wing.astype(float))
-    hover, tmax = rest_hover_thrust(drone, float(sim_cfg.gravity)), drone.max_thrust
-    room = np.where(pattern > 0, tmax - hover, -tmax - hover) / np.where(pattern == 0, np.inf, pattern)
-    u = hover + room[pattern != 0].min() * pattern
-    sim = Simulator(drone, OmegaConf.merge(sim_cfg, {"obstacles": []}),
-                    OmegaConf.merge(noise_cfg, {"enabled": False}), seed=0)
-    r = sim.reset()
-    for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
-        r = sim.step(u)
-        if not sim.alive:
-            break
-    return float(np.rad2deg(decompose(r, drone.layout).s[wings]).min())
+    """The bend (deg) the folding wings hold under the strongest no-net-wrench thrust pattern
+    that favours their rotors (``statics.held_bend``): an upper bound on the fold any controller
+    can ask of this body (the least of the folding wings' bends)."""
+    bends = held_bend(drone, sim_cfg, noise_cfg, outer_rotors(drone, along_z=True), None, seconds)
+    return float(bends[wings].min())
 
 
 def touching(points: np.ndarray, boxes, margin: float = 1e-3) -> bool:

@@ -32,8 +32,9 @@ def refinement_plot(table: pd.DataFrame, path: Path) -> None:
 
 
 def bench_plot(table: pd.DataFrame, path: Path) -> None:
-    """Real-time factor per drone, and cost against element count (linear scaling)."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    """Real-time factor per drone, cost against element count (linear scaling), and speed
+    against bending accuracy over the refined flower meshes."""
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4))
     base = table[table["series"] == "drone"]
     axes[0].barh(base["drone"], base["realtime_factor"], color="tab:blue")
     axes[0].axvline(10, color="r", ls="--", label="10x real time")
@@ -48,6 +49,16 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
     axes[1].set_ylabel("microseconds per substep")
     axes[1].legend()
     axes[1].minorticks_off()
+    if "bend_deg" in scale and len(scale):
+        axes[2].semilogx(scale["realtime_factor"], scale["bend_deg"], "o-", color="tab:blue")
+        for _, r in scale.iterrows():
+            axes[2].annotate(f"{r['elements']} tets", (r["realtime_factor"], r["bend_deg"]), fontsize=7,
+                             textcoords="offset points", xytext=(4, 4))
+        axes[2].axvline(10, color="r", ls="--", label="10x real time")
+        axes[2].axhline(scale["bend_deg"].iloc[-1], color="k", ls=":", lw=0.8, label="finest mesh")
+        axes[2].set_xlabel("real-time factor")
+        axes[2].set_ylabel("petal bend under a fixed load (deg)")
+        axes[2].legend(fontsize=8)
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.tight_layout()
