@@ -30,8 +30,9 @@ def _plain(cfg):
     return OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
 
 
-# Below this many elements a second thread costs more in synchronisation (two parallel
-# regions a substep) than it saves, and a busy second core stalls every region.
+# Below this many elements a second thread saves no more than its synchronisation costs (three
+# barriers a substep; measured again in session 6 on 542-1328 elements: a wash within this
+# VM's noise), and a busy second core stalls every barrier.
 PARALLEL_MIN_ELEMENTS = 1500
 
 
