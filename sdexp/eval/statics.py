@@ -1,5 +1,6 @@
 """Bends a drone's rotors can hold: open loop, noise-free, under a thrust pattern that puts no net
-force or torque on the rest shape (so the body hovers roughly level and only deforms).
+lift or tilting torque on the rest shape (geometry.deformation_patterns: the body hovers roughly
+level and only deforms).
 
 Used as a yardstick of the body itself, apart from any controller: the obstacle experiment's
 fold limit (how far the star's wings can fold at all), and bench_sim's accuracy column (how much
@@ -9,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from omegaconf import OmegaConf
 
-from sdexp.sim.geometry import rest_hover_thrust, rest_wrench_null_space, rigid_body
+from sdexp.sim.geometry import rest_hover_thrust, deformation_patterns, rigid_body
 from sdexp.sim.sensors import decompose
 from sdexp.sim.simulator import Simulator
 
@@ -29,9 +30,9 @@ def outer_rotors(drone, along_z: bool = False) -> np.ndarray:
 def held_bend(drone, sim_cfg, noise_cfg, rotors: np.ndarray, amplitude: float | None = None,
               seconds: float = 3.0) -> np.ndarray:
     """Bend angles s (deg, one per peripheral sensor) after ``seconds`` of hover thrust plus the
-    no-net-wrench pattern nearest to pushing the masked ``rotors`` up, its largest rotor offset
+    deformation pattern nearest to pushing the masked ``rotors`` up, its largest rotor offset
     ``amplitude`` (N; None: as large as +-Tmax allows on top of hover)."""
-    null = rest_wrench_null_space(drone)
+    null = deformation_patterns(drone)
     pattern = null @ (null.T @ rotors.astype(float))
     if not np.abs(pattern).max() > 1e-9:
         raise ValueError(f"drone {drone.name}: those rotors cannot push without a net force or torque")

@@ -10,7 +10,7 @@ Every episode starts from ``Simulator.reset()`` (the undeformed drone at rest), 
 a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw (the paper's
 recipe; ``data.thrust_range`` narrows the draw and ``data.around_hover`` centres it on the
 rest shape's minimum-norm hover thrust; ``data.deform_range`` adds a thrust pattern held for
-``data.deform_hold_seconds`` that puts no net force or torque on the rest shape, so that the data
+``data.deform_hold_seconds`` that puts no net lift or tilting torque on the rest shape, so that the data
 visit held deformations in level flight). One transition per
 control step: the state decomposed from the readings before the step, the command, and the
 rates decomposed from the readings after it. An episode ends on a failure (the failing step is
@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.rotations import euler_and_rates
-from sdexp.sim.geometry import rest_hover_thrust, rest_wrench_null_space
+from sdexp.sim.geometry import rest_hover_thrust, deformation_patterns
 from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many
@@ -96,9 +96,10 @@ def _simulator(spec: dict):
 
 
 def _deformation(rng: np.random.Generator, patterns: np.ndarray, largest: float) -> np.ndarray:
-    """A thrust offset in the span of ``patterns`` (no net rest-shape wrench), random direction,
-    its largest rotor offset drawn from U[0, largest]."""
-    v = patterns @ rng.standard_normal(patterns.shape[1])
+    """A thrust offset in the span of ``patterns`` (geometry.deformation_patterns): an isotropic
+    Gaussian projected on it (the same draw whichever basis spans it), its largest rotor offset
+    drawn from U[0, largest]."""
+    v = patterns @ (patterns.T @ rng.standard_normal(patterns.shape[0]))
     return rng.uniform(0.0, largest) * v / np.abs(v).max()
 
 
@@ -119,10 +120,10 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     centre = rest_hover_thrust(drone, float(spec["sim"]["gravity"])) if data.get("around_hover") else 0.0
     deform = tmax * float(data.get("deform_range", 0.0))
     if deform > 0:
-        patterns = rest_wrench_null_space(drone)
+        patterns = deformation_patterns(drone)
         if patterns.shape[1] == 0:
             raise UserError(f"data.deform_range = {data['deform_range']}: drone {drone.name}'s "
-                            f"{m} rotors have no thrust pattern free of net force and torque; set it to 0")
+                            f"{m} rotors have no thrust pattern free of net lift and tilting torque; set it to 0")
         deform_hold = max(1, int(round(data["deform_hold_seconds"] / dt)))
     offset = 0.0
     w = widths(layout.dim, layout.n_s, m)

@@ -34,12 +34,16 @@ def rest_hover_thrust(drone, gravity: float) -> np.ndarray:
     return hover_thrust(mass, pos, dirs, gravity)
 
 
-def rest_wrench_null_space(drone) -> np.ndarray:
-    """Orthonormal basis (m, k) of the rotor thrust patterns that put no net force or torque on
-    the undeformed drone: they only deform it (flower: 9 rotors - 3 = 6 patterns; star 2)."""
+def deformation_patterns(drone) -> np.ndarray:
+    """Orthonormal basis (m, k) of the rotor thrust patterns that put no net lift and no roll or
+    pitch torque on the undeformed drone (3D: force y, torques x and z; 2D: force y, torque):
+    they bend it and leave it level (flower: 9 rotors - 3 = 6 patterns; star 2). Horizontal force
+    and yaw torque are left free: rotors on sloped surfaces have a little of both, and asking
+    those to vanish too would leave no pattern on a drone with few rotors."""
     fem = drone.fem
     _, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
-    _, sv, vt = np.linalg.svd(wrench_matrix(pos, dirs))
+    W = wrench_matrix(pos, dirs)[[1, 3, 5] if fem.dim == 3 else [1, 2]]
+    _, sv, vt = np.linalg.svd(W)
     rank = int(np.sum(sv > 1e-9 * sv[0]))
     return np.ascontiguousarray(vt[rank:].T)
 

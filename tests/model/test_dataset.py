@@ -255,17 +255,17 @@ def test_obstacles_are_scenery_not_part_of_the_data(reference):
     assert dataset_spec(boxed, CHUNK)["sim"]["obstacles"] == []
 
 
-def test_deform_range_holds_patterns_with_no_net_rest_wrench(tmp_path, monkeypatch):
+def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkeypatch):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.geometry import rest_hover_thrust, rest_wrench_null_space, rigid_body, wrench_matrix
+    from sdexp.sim.geometry import rest_hover_thrust, deformation_patterns, rigid_body, wrench_matrix
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
                    "data.deform_range=0.3", "data.deform_hold_seconds=0.5")
     drone = build_drone(cfg.drone, cfg.cache_dir)
     fem = drone.fem
     _, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
-    W = wrench_matrix(pos, dirs)
-    null = rest_wrench_null_space(drone)
+    W = wrench_matrix(pos, dirs)[[1, 2]]   # 2D: lift and the (tilting) torque
+    null = deformation_patterns(drone)
     assert null.shape == (drone.num_rotors, drone.num_rotors - np.linalg.matrix_rank(W))
     np.testing.assert_allclose(null.T @ null, np.eye(null.shape[1]), atol=1e-12)
     np.testing.assert_allclose(W @ null, 0.0, atol=1e-9)
@@ -273,7 +273,7 @@ def test_deform_range_holds_patterns_with_no_net_rest_wrench(tmp_path, monkeypat
     ds = load_dataset(cfg, CHUNK).arrays
     offset = ds["u"] - rest_hover_thrust(drone, float(cfg.sim.gravity))
     tmax, dither = float(cfg.drone.max_thrust), 0.001 * float(cfg.drone.max_thrust)
-    # the held pattern puts no net force or torque on the rest shape (up to the fast dither)
+    # the held pattern puts no net lift or torque on the rest shape (up to the fast dither)
     assert np.abs(offset @ W.T).max() <= np.abs(W).sum(axis=1).max() * dither + 1e-4
     assert np.abs(offset).max() <= 0.3 * tmax + dither + 1e-5
     assert np.abs(offset).max() > 0.15 * tmax                  # the draws span the range
@@ -286,6 +286,6 @@ def test_deform_range_holds_patterns_with_no_net_rest_wrench(tmp_path, monkeypat
     assert dataset_key(dataset_spec(off, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
     # a drone whose rotors cannot deform it without a net wrench: a clear error
-    monkeypatch.setattr(generate, "rest_wrench_null_space", lambda d: np.zeros((d.num_rotors, 0)))
+    monkeypatch.setattr(generate, "deformation_patterns", lambda d: np.zeros((d.num_rotors, 0)))
     with pytest.raises(UserError, match="data.deform_range"):
         generate.generate_chunk(dataset_spec(cfg, CHUNK), 0, 10)

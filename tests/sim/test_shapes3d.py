@@ -207,3 +207,27 @@ def test_tet_mesh_is_deterministic_and_leaves_cwd_clean(tmp_path, monkeypatch):
 def test_tet_mesh_rejects_a_bad_edge_length():
     with pytest.raises(ValueError, match="edge_length"):
         tet_mesh(*box_surface(), 0.0)
+
+
+@pytest.mark.parametrize("name", ["star", "flower"])
+def test_thin_lobes_keep_the_bounding_box(shapes, name):
+    cfg = drone_cfg(name)
+    s = make(name, params={**cfg.params, "lobe_thickness": 0.4})
+    assert_closed_outward(s.vertices, s.faces)
+    np.testing.assert_allclose(np.ptp(s.vertices, axis=0), np.array(cfg.size), rtol=0.02)
+    # the wall is as thick as the y size over the hub and 0.4 of it over the lobes
+    rho = np.hypot(s.vertices[:, 0], s.vertices[:, 2])
+    t = float(cfg.size[1])
+    centre = rho < 0.2
+    assert np.abs(s.vertices[centre, 1]).max() == pytest.approx(t / 2, rel=1e-6)
+    tips = rho > 0.99 * rho.max()
+    np.testing.assert_allclose(np.abs(s.vertices[tips, 1]), 0.4 * t / 2, rtol=0.03)
+    # an anchor sits on the upper surface at its local thickness: outer rotors lower than the centre one
+    assert s.rotors[1:, 1].max() < s.rotors[0, 1] - 0.1 * t
+    for p in s.rotors:
+        dist, _ = closest_faces(p, s.vertices, s.faces)
+        assert dist.min() < 1e-3 * t   # the caps' facets against the taper, linear in rho
+    even = make(name, params={**cfg.params, "lobe_thickness": 1.0})
+    np.testing.assert_array_equal(even.vertices, shapes[name].vertices)   # 1: the even plate, unchanged
+    with pytest.raises(ValueError, match="lobe_thickness"):
+        make(name, params={**cfg.params, "lobe_thickness": 1.5})

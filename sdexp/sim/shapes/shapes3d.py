@@ -139,6 +139,7 @@ class _Design:
     thickness: float
     profile: Callable[[float], Profile] | None = None   # rise -> g; None: flat
     rise: float = 0.0           # first guess of the mid-surface rise (curved drones)
+    taper: Callable[[np.ndarray], np.ndarray] | None = None  # design points -> thickness fraction; None: 1
 
 
 class _Plate:
@@ -157,8 +158,9 @@ class _Plate:
         pslg = {"vertices": points, "segments": np.vstack(segments)}
         if design.hole_points:
             pslg["holes"] = np.array(design.hole_points, dtype=float)
-        # Flat caps need no inner vertex (fTetWild would spend seconds simplifying them away).
-        opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if design.profile else "p"
+        # Flat, even caps need no inner vertex (fTetWild would spend seconds simplifying them
+        # away); curved or tapered ones do, to follow the surface.
+        opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if design.profile or design.taper else "p"
         tri = triangle.triangulate(pslg, opts)
         self.planar, self.tris = tri["vertices"], tri["triangles"].astype(np.int64)
         self.scale, self.shift = np.ones(2), np.zeros(2)
@@ -206,9 +208,17 @@ class _Plate:
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         return np.c_[q[:, 0], g, q[:, 1]], n
 
+    def _half_thickness(self, q: np.ndarray) -> np.ndarray:
+        """Half the wall thickness (k, 1) over fitted planar points q (k, 2)."""
+        t = np.full(len(q), 0.5 * self.d.thickness)
+        if self.d.taper:
+            t *= self.d.taper((q - self.shift) / self.scale)
+        return t[:, None]
+
     def _surface_vertices(self) -> np.ndarray:
-        mid, n = self._mid(self.planar * self.scale + self.shift)
-        t = 0.5 * self.d.thickness
+        q = self.planar * self.scale + self.shift
+        mid, n = self._mid(q)
+        t = self._half_thickness(q)
         return np.vstack([mid + t * n, mid - t * n])
 
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
@@ -229,13 +239,12 @@ class _Plate:
         """Points of the upper surface at planar positions xz (k, 2), its normals there, and
         whether each lies over the body."""
         xz = np.atleast_2d(np.asarray(xz, dtype=float))
-        t = 0.5 * self.d.thickness
         q = xz.copy()
         for _ in range(60):   # the upper surface is mid + t n: find the mid point q under xz
             _, n = self._mid(q)
-            q = xz - t * n[:, [0, 2]]
+            q = xz - self._half_thickness(q) * n[:, [0, 2]]
         mid, n = self._mid(q)
-        points = mid + t * n
+        points = mid + self._half_thickness(q) * n
         points[:, [0, 2]] = xz   # exact, not to the fixed point's tolerance
         return points, n, self.d.inside((q - self.shift) / self.scale)
 
@@ -331,16 +340,32 @@ def _at(angles: np.ndarray, radius: float) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # the six drones (default proportions in metres, for the paper's sizes)
 
+def _lobe_taper(hub: float, length: float, lobe: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Thickness fraction: 1 over the hub, ``lobe`` over the lobes, a smooth step between over
+    the first quarter of their length (no sharp re-entrant corner for the mesher)."""
+    ramp = 0.25 * (length - hub)
+
+    def taper(p: np.ndarray) -> np.ndarray:
+        x = np.clip((np.hypot(p[:, 0], p[:, 1]) - hub) / ramp, 0.0, 1.0)
+        return 1.0 - (1.0 - lobe) * x * x * (3.0 - 2.0 * x)
+    return taper
+
+
 def _hub_with_lobes(name, size, thickness, num_rotors, num_sensors, p, keys, lobes) -> Shape:
     """A flat hub with ``lobes`` tapered lobes along equal angles (the first along +X); a rotor
     at the centre and near each lobe tip. ``keys``: the names of (hub radius, lobe root width,
-    lobe tip width) in ``p``."""
+    lobe tip width) in ``p``; ``p["lobe_thickness"]``: the lobes' thickness as a fraction of the
+    hub's (1: an even plate; a starfish is thick in the middle, thin in its arms)."""
     _count(name, f"{lobes + 1} rotors (centre + {lobes} lobes)", lobes + 1, num_rotors, "num_rotors")
     length, angles = 0.5 * float(size[0]), _angles(lobes)
     hub, root, tip = (p[k] for k in keys)
+    if not p["lobe_thickness"] <= 1:
+        raise ValueError(f"{name}: params.lobe_thickness = {p['lobe_thickness']} must be in (0, 1] "
+                         "(a fraction of the hub's thickness, which the y size sets)")
     body = _lobes(name, hub, angles, root, tip, length)
     design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [],
-                     _thickness(name, size, thickness))
+                     _thickness(name, size, thickness),
+                     taper=_lobe_taper(hub, length, p["lobe_thickness"]) if p["lobe_thickness"] != 1 else None)
     radii = np.r_[0.0, np.full(len(angles), length - p["rotor_inset"])]
     return _finish(_Plate(design, size), radii, np.r_[0.0, angles], num_sensors)
 
@@ -348,7 +373,7 @@ def _hub_with_lobes(name, size, thickness, num_rotors, num_sensors, p, keys, lob
 def make_flower(size, thickness, num_rotors, num_sensors, params) -> Shape:
     """Central disc and 8 petals; a rotor at the centre and near each petal tip."""
     p = _params("flower", params, {"disc_radius": 0.6, "petal_root_width": 0.2, "petal_width": 0.8,
-                                   "rotor_inset": 0.3})
+                                   "rotor_inset": 0.3, "lobe_thickness": 1.0})
     return _hub_with_lobes("flower", size, thickness, num_rotors, num_sensors, p,
                            ("disc_radius", "petal_root_width", "petal_width"), 8)
 
@@ -357,7 +382,7 @@ def make_star(size, thickness, num_rotors, num_sensors, params) -> Shape:
     """Starfish: central body and 4 tapered wings along +-X and +-Z; a rotor at the centre
     and near each wing tip."""
     p = _params("star", params, {"body_radius": 0.8, "wing_root_width": 1.4, "wing_tip_width": 0.5,
-                                 "rotor_inset": 0.3})
+                                 "rotor_inset": 0.3, "lobe_thickness": 1.0})
     return _hub_with_lobes("star", size, thickness, num_rotors, num_sensors, p,
                            ("body_radius", "wing_root_width", "wing_tip_width"), 4)
 
