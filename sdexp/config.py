@@ -83,7 +83,7 @@ class DataConfig:
     thrust_range: List[float] = field(default_factory=lambda: [-1.0, 1.0])  # U[lo, hi] x Tmax (paper: [-1, 1])
     around_hover: bool = False      # true: each hold draws hover thrust + U[lo, hi] x Tmax (paper: false)
     deform_range: float = 0.0       # x Tmax: largest rotor offset of a held thrust pattern with no net
-                                    # rest-shape wrench (a deformation with level flight); 0: none (paper)
+                                    # lift or tilting torque on the rest shape (it only deforms); 0: none (paper)
     deform_hold_seconds: float = 1.0  # such a pattern is redrawn this often
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
     region: float = 30.0            # m from the start beyond which an episode restarts

@@ -27,9 +27,9 @@ def folding_wings(r_hat: np.ndarray) -> np.ndarray:
 
 
 def fold_limit(drone, sim_cfg, noise_cfg, wings: np.ndarray, seconds: float = 3.0) -> float:
-    """The bend (deg) the folding wings hold under the strongest deformation pattern (no net lift or tilting torque)
-    that favours their rotors (``statics.held_bend``): an upper bound on the fold any controller
-    can ask of this body (the least of the folding wings' bends)."""
+    """The bend (deg) the folding wings hold under the strongest deformation pattern (no net lift
+    or tilting torque) that favours their rotors (``statics.held_bend``): an upper bound on the
+    fold any controller can ask of this body (the least of the folding wings' bends)."""
     bends = held_bend(drone, sim_cfg, noise_cfg, outer_rotors(drone, along_z=True), None, seconds)
     return float(bends[wings].min())
 

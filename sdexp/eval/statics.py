@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from omegaconf import OmegaConf
 
-from sdexp.sim.geometry import rest_hover_thrust, deformation_patterns, rigid_body
+from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust, rigid_body
 from sdexp.sim.sensors import decompose
 from sdexp.sim.simulator import Simulator
 
@@ -35,7 +35,7 @@ def held_bend(drone, sim_cfg, noise_cfg, rotors: np.ndarray, amplitude: float | 
     null = deformation_patterns(drone)
     pattern = null @ (null.T @ rotors.astype(float))
     if not np.abs(pattern).max() > 1e-9:
-        raise ValueError(f"drone {drone.name}: those rotors cannot push without a net force or torque")
+        raise ValueError(f"drone {drone.name}: those rotors cannot push without a net lift or tilting torque")
     pattern /= np.abs(pattern).max()
     hover, tmax = rest_hover_thrust(drone, float(sim_cfg.gravity)), drone.max_thrust
     if amplitude is None:

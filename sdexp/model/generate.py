@@ -10,8 +10,8 @@ Every episode starts from ``Simulator.reset()`` (the undeformed drone at rest), 
 a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw (the paper's
 recipe; ``data.thrust_range`` narrows the draw and ``data.around_hover`` centres it on the
 rest shape's minimum-norm hover thrust; ``data.deform_range`` adds a thrust pattern held for
-``data.deform_hold_seconds`` that puts no net lift or tilting torque on the rest shape, so that the data
-visit held deformations in level flight). One transition per
+``data.deform_hold_seconds`` that puts no net lift or tilting torque on the rest shape, so that
+the data visit held deformations in level flight). One transition per
 control step: the state decomposed from the readings before the step, the command, and the
 rates decomposed from the readings after it. An episode ends on a failure (the failing step is
 dropped: its readings are frozen, not measured), after the step that takes p further than
@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.rotations import euler_and_rates
-from sdexp.sim.geometry import rest_hover_thrust, deformation_patterns
+from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust
 from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many

@@ -257,7 +257,7 @@ def test_obstacles_are_scenery_not_part_of_the_data(reference):
 
 def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkeypatch):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.geometry import rest_hover_thrust, deformation_patterns, rigid_body, wrench_matrix
+    from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
                    "data.deform_range=0.3", "data.deform_hold_seconds=0.5")
@@ -285,7 +285,7 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
     off = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]")
     assert dataset_key(dataset_spec(off, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
-    # a drone whose rotors cannot deform it without a net wrench: a clear error
+    # a drone whose rotors cannot deform it without net lift or torque: a clear error
     monkeypatch.setattr(generate, "deformation_patterns", lambda d: np.zeros((d.num_rotors, 0)))
     with pytest.raises(UserError, match="data.deform_range"):
         generate.generate_chunk(dataset_spec(cfg, CHUNK), 0, 10)
