@@ -231,3 +231,14 @@ def test_thin_lobes_keep_the_bounding_box(shapes, name):
     np.testing.assert_array_equal(even.vertices, shapes[name].vertices)   # 1: the even plate, unchanged
     with pytest.raises(ValueError, match="lobe_thickness"):
         make(name, params={**cfg.params, "lobe_thickness": 1.5})
+    # thin_from < 1: only a central pod keeps the full thickness, the hub's rim is thin too
+    hub = float(cfg.params[{"star": "body_radius", "flower": "disc_radius"}[name]])
+    pod = make(name, params={**cfg.params, "lobe_thickness": 0.4, "thin_from": 0.25})
+    np.testing.assert_allclose(np.ptp(pod.vertices, axis=0), np.array(cfg.size), rtol=0.02)
+    r = np.hypot(pod.vertices[:, 0], pod.vertices[:, 2])
+    assert np.abs(pod.vertices[r < 0.2 * hub, 1]).max() == pytest.approx(t / 2, rel=1e-6)
+    rim = (r > 0.25 * hub + 0.25 * (rho.max() - hub) + 1e-3) & (r < hub)
+    assert rim.any()
+    np.testing.assert_allclose(np.abs(pod.vertices[rim, 1]), 0.4 * t / 2, rtol=1e-6)
+    with pytest.raises(ValueError, match="thin_from"):
+        make(name, params={**cfg.params, "thin_from": 1.5})

@@ -340,13 +340,11 @@ def _at(angles: np.ndarray, radius: float) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # the six drones (default proportions in metres, for the paper's sizes)
 
-def _lobe_taper(hub: float, length: float, lobe: float) -> Callable[[np.ndarray], np.ndarray]:
-    """Thickness fraction: 1 over the hub, ``lobe`` over the lobes, a smooth step between over
-    the first quarter of their length (no sharp re-entrant corner for the mesher)."""
-    ramp = 0.25 * (length - hub)
-
+def _lobe_taper(start: float, ramp: float, lobe: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Thickness fraction: 1 within radius ``start``, ``lobe`` beyond ``start + ramp``, a smooth
+    step between (no sharp re-entrant corner for the mesher)."""
     def taper(p: np.ndarray) -> np.ndarray:
-        x = np.clip((np.hypot(p[:, 0], p[:, 1]) - hub) / ramp, 0.0, 1.0)
+        x = np.clip((np.hypot(p[:, 0], p[:, 1]) - start) / ramp, 0.0, 1.0)
         return 1.0 - (1.0 - lobe) * x * x * (3.0 - 2.0 * x)
     return taper
 
@@ -355,17 +353,20 @@ def _hub_with_lobes(name, size, thickness, num_rotors, num_sensors, p, keys, lob
     """A flat hub with ``lobes`` tapered lobes along equal angles (the first along +X); a rotor
     at the centre and near each lobe tip. ``keys``: the names of (hub radius, lobe root width,
     lobe tip width) in ``p``; ``p["lobe_thickness"]``: the lobes' thickness as a fraction of the
-    hub's (1: an even plate; a starfish is thick in the middle, thin in its arms)."""
+    hub's (1: an even plate; a starfish is thick in the middle, thin in its arms), thinning from
+    ``p["thin_from"]`` x the hub radius over a quarter of the lobes' length (below 1: only a
+    central pod keeps the full thickness)."""
     _count(name, f"{lobes + 1} rotors (centre + {lobes} lobes)", lobes + 1, num_rotors, "num_rotors")
     length, angles = 0.5 * float(size[0]), _angles(lobes)
     hub, root, tip = (p[k] for k in keys)
-    if not p["lobe_thickness"] <= 1:
-        raise ValueError(f"{name}: params.lobe_thickness = {p['lobe_thickness']} must be in (0, 1] "
-                         "(a fraction of the hub's thickness, which the y size sets)")
+    if not (p["lobe_thickness"] <= 1 and p["thin_from"] <= 1):
+        raise ValueError(f"{name}: params.lobe_thickness = {p['lobe_thickness']} and params.thin_from = "
+                         f"{p['thin_from']} must be in (0, 1] (fractions of the hub's thickness and radius)")
     body = _lobes(name, hub, angles, root, tip, length)
     design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [],
                      _thickness(name, size, thickness),
-                     taper=_lobe_taper(hub, length, p["lobe_thickness"]) if p["lobe_thickness"] != 1 else None)
+                     taper=_lobe_taper(p["thin_from"] * hub, 0.25 * (length - hub), p["lobe_thickness"])
+                     if p["lobe_thickness"] != 1 else None)
     radii = np.r_[0.0, np.full(len(angles), length - p["rotor_inset"])]
     return _finish(_Plate(design, size), radii, np.r_[0.0, angles], num_sensors)
 
@@ -373,7 +374,7 @@ def _hub_with_lobes(name, size, thickness, num_rotors, num_sensors, p, keys, lob
 def make_flower(size, thickness, num_rotors, num_sensors, params) -> Shape:
     """Central disc and 8 petals; a rotor at the centre and near each petal tip."""
     p = _params("flower", params, {"disc_radius": 0.6, "petal_root_width": 0.2, "petal_width": 0.8,
-                                   "rotor_inset": 0.3, "lobe_thickness": 1.0})
+                                   "rotor_inset": 0.3, "lobe_thickness": 1.0, "thin_from": 1.0})
     return _hub_with_lobes("flower", size, thickness, num_rotors, num_sensors, p,
                            ("disc_radius", "petal_root_width", "petal_width"), 8)
 
@@ -382,7 +383,7 @@ def make_star(size, thickness, num_rotors, num_sensors, params) -> Shape:
     """Starfish: central body and 4 tapered wings along +-X and +-Z; a rotor at the centre
     and near each wing tip."""
     p = _params("star", params, {"body_radius": 0.8, "wing_root_width": 1.4, "wing_tip_width": 0.5,
-                                 "rotor_inset": 0.3, "lobe_thickness": 1.0})
+                                 "rotor_inset": 0.3, "lobe_thickness": 1.0, "thin_from": 1.0})
     return _hub_with_lobes("star", size, thickness, num_rotors, num_sensors, p,
                            ("body_radius", "wing_root_width", "wing_tip_width"), 4)
 
