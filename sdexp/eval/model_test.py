@@ -158,28 +158,22 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     retried with the next seed; the longest one is kept."""
     from tqdm import tqdm
 
+    from sdexp.model.generate import commands
     from sdexp.sim.drone import build_drone
     from sdexp.sim.sensors import decompose
     from sdexp.sim.simulator import Simulator
 
-    from sdexp.sim.geometry import rest_hover_thrust
-
     drone = build_drone(cfg.drone, cfg.cache_dir)
     dt = float(cfg.sim.control_dt)
     steps = int(round(seconds / dt))
-    hold = max(1, int(round(float(cfg.data.hold_seconds) / dt)))
-    # the draw of the data recipe (sdexp.model.generate): U[lo, hi] x Tmax, around hover or not
-    lo, hi = (drone.max_thrust * f for f in cfg.data.thrust_range)
-    centre = rest_hover_thrust(drone, float(cfg.sim.gravity)) if cfg.data.get("around_hover") else 0.0
     best = None
     for attempt in range(attempts):
         sim = Simulator(drone, cfg.sim, cfg.noise, seed + attempt)
-        rng = np.random.default_rng(seed + attempt)
+        cmds = commands(drone, cfg.data, float(cfg.sim.gravity), dt, np.random.default_rng(seed + attempt))
         xs = [decompose(sim.reset(), drone.layout).x]
         us = []
-        for k in tqdm(range(steps), desc="test flight", leave=False, disable=None):
-            if k % hold == 0:
-                u = centre + rng.uniform(lo, hi, drone.num_rotors)
+        for _ in tqdm(range(steps), desc="test flight", leave=False, disable=None):
+            u = next(cmds)
             r = sim.step(u)
             if not sim.alive:
                 print(f"sdexp: test flight {attempt}: {sim.failure.reason} at {sim.failure.time:.2f} s, retrying")

@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import time
 from collections import Counter
-from typing import Callable
+from typing import Callable, Iterator
 
 import numba as nb
 import numpy as np
@@ -103,6 +103,36 @@ def _deformation(rng: np.random.Generator, patterns: np.ndarray, largest: float)
     return rng.uniform(0.0, largest) * v / np.abs(v).max()
 
 
+def commands(drone, data, gravity: float, dt: float, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """The data recipe's command at every control step of one episode (``data``: the data config
+    or its spec dict): per rotor U[lo, hi] x Tmax held ``hold_seconds``, around the hover thrust
+    if ``around_hover``, plus a deformation pattern held ``deform_hold_seconds`` if
+    ``deform_range`` > 0. Validates eagerly; yields forever."""
+    tmax, m = drone.max_thrust, drone.num_rotors
+    hold = max(1, int(round(data["hold_seconds"] / dt)))
+    lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
+    centre = rest_hover_thrust(drone, gravity) if data.get("around_hover") else 0.0
+    deform = tmax * float(data.get("deform_range", 0.0))
+    patterns, deform_hold = None, 1
+    if deform > 0:
+        patterns = deformation_patterns(drone)
+        if patterns.shape[1] == 0:
+            raise UserError(f"data.deform_range = {data['deform_range']}: drone {drone.name}'s "
+                            f"{m} rotors have no thrust pattern free of net lift and tilting torque; set it to 0")
+        deform_hold = max(1, int(round(data["deform_hold_seconds"] / dt)))
+
+    def stream():
+        offset, k = 0.0, 0
+        while True:
+            if deform > 0 and k % deform_hold == 0:
+                offset = _deformation(rng, patterns, deform)
+            if k % hold == 0:
+                u = centre + offset + rng.uniform(lo, hi, m)
+            yield u
+            k += 1
+    return stream()
+
+
 def generate_chunk(spec: dict, chunk: int, n: int,
                    progress: Callable[[int], None] | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """Transitions ``[chunk * chunk_samples, chunk * chunk_samples + n)`` of the dataset, as
@@ -112,21 +142,10 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     layout = drone.layout
     data = spec["data"]
     dt = float(spec["sim"]["control_dt"])
-    hold = max(1, int(round(data["hold_seconds"] / dt)))
+    gravity = float(spec["sim"]["gravity"])
     ep_steps = max(1, int(round(data["episode_seconds"] / dt)))
     region2 = float(data["region"]) ** 2
-    tmax, m = drone.max_thrust, drone.num_rotors
-    lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
-    centre = rest_hover_thrust(drone, float(spec["sim"]["gravity"])) if data.get("around_hover") else 0.0
-    deform = tmax * float(data.get("deform_range", 0.0))
-    if deform > 0:
-        patterns = deformation_patterns(drone)
-        if patterns.shape[1] == 0:
-            raise UserError(f"data.deform_range = {data['deform_range']}: drone {drone.name}'s "
-                            f"{m} rotors have no thrust pattern free of net lift and tilting torque; set it to 0")
-        deform_hold = max(1, int(round(data["deform_hold_seconds"] / dt)))
-    offset = 0.0
-    w = widths(layout.dim, layout.n_s, m)
+    w = widths(layout.dim, layout.n_s, drone.num_rotors)
     out = {k: np.empty((n, v)) for k, v in w.items()}
     episode = np.empty(n, dtype=np.int32)
     tt = np.empty(n)
@@ -138,7 +157,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     i, ep, empty, last_report = 0, 0, 0, 0
     while i < n:
         ss_thrust, ss_noise = np.random.SeedSequence(spec["seed"], spawn_key=(chunk, ep)).spawn(2)
-        rng = np.random.default_rng(ss_thrust)
+        cmds = commands(drone, data, gravity, dt, np.random.default_rng(ss_thrust))
         sim.rng = np.random.default_rng(ss_noise)
         r = sim.reset()
         st = decompose(r, layout)
@@ -146,10 +165,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
         p0 = st.p.copy()
         start, k = i, 0
         while True:
-            if deform > 0 and k % deform_hold == 0:
-                offset = _deformation(rng, patterns, deform)
-            if k % hold == 0:
-                u = centre + offset + rng.uniform(lo, hi, m)
+            u = next(cmds)
             r = sim.step(u)
             if not sim.alive:
                 ends[sim.failure.reason] += 1
