@@ -82,6 +82,8 @@ class DataConfig:
     hold_seconds: float = 1.0       # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
     thrust_range: List[float] = field(default_factory=lambda: [-1.0, 1.0])  # U[lo, hi] x Tmax (paper: [-1, 1])
     around_hover: bool = False      # true: each hold draws hover thrust + U[lo, hi] x Tmax (paper: false)
+    hover: str = "rigid"            # that hover thrust: rigid (the rest shape's, weight spread evenly) |
+                                    # shape (plus the no-lift pattern that keeps the body flattest, sim.statics)
     deform_range: float = 0.0       # x Tmax: largest rotor offset of a held thrust pattern with no net
                                     # lift or tilting torque on the rest shape (it only deforms); 0: none (paper)
     deform_hold_seconds: float = 1.0  # such a pattern is redrawn this often
@@ -103,6 +105,7 @@ class ModelConfig:
     lr_step: int = 20
     loss: str = "l1"                # l1 | l2
     keep_best: bool = True          # return the epoch of lowest validation loss (false: the last, as the paper)
+    linear: List[str] = field(default_factory=list)  # nets (d, g, h, raw) that are linear maps, no hidden layers
     horizon: int = 1                # predict the velocity this many frames ahead (paper: 1); alpha = horizon x dt
     threads: int = 2                # torch threads: >= 2 trains d, g, h side by side, one thread each
 
@@ -239,8 +242,12 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(0 <= a.deform_range <= 1, "data.deform_range", a.deform_range, "in [0, 1] x max_thrust")
     _check(a.deform_hold_seconds > 0, "data.deform_hold_seconds", a.deform_hold_seconds, "> 0 s")
     _check(a.workers >= 1, "data.workers", a.workers, ">= 1")
+    _check(a.hover in ("rigid", "shape"), "data.hover", a.hover, "rigid or shape")
+    _check(a.hover == "rigid" or a.around_hover, "data.hover", a.hover,
+           "rigid unless data.around_hover = true (shape names the centre of a draw around hover)")
     _check(0 < a.validation_fraction < 1, "data.validation_fraction", a.validation_fraction, "in (0, 1)")
     _check(m.hidden >= 1 and m.blocks >= 1, "model.hidden/blocks", (m.hidden, m.blocks), ">= 1")
+    _check(set(m.linear) <= {"d", "g", "h", "raw"}, "model.linear", list(m.linear), "a list of d, g, h, raw")
     _check(m.epochs >= 1, "model.epochs", m.epochs, ">= 1")
     _check(m.batch_size >= 1, "model.batch_size", m.batch_size, ">= 1")
     _check(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",

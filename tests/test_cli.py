@@ -68,10 +68,13 @@ def test_misspelled_key_is_an_error():
     ("sim.substep=0.5", "sim.substep"),
     ("drone.deformation_damping=-1", "drone.deformation_damping"),
     ("model.horizon=0", "model.horizon"),
+    ("model.linear=[d,q]", "model.linear"),
+    ("data.hover=bent", "data.hover"),
+    ("data.around_hover=false data.hover=shape", "data.hover"),
 ])
 def test_non_physical_values_name_the_key(override, key):
     with pytest.raises(UserError, match=key.replace(".", r"\.")):
-        validate(make_cfg(override))
+        validate(make_cfg(*override.split()))
 
 
 def _cli(*args, cwd):

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from sdexp.eval.statics import held_bend, outer_rotors
+from sdexp.sim.statics import held_bend, outer_rotors
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
 
@@ -74,7 +74,7 @@ def run(cfg, out_dir: Path) -> dict:
         drone = build_drone(d, cfg.cache_dir)
         row = time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed))
         # mean bend of the peripheral sensors, outer rotors pushing bend_load N harder than the rest
-        row["bend_deg"] = float(held_bend(drone, cfg.sim, cfg.noise, outer_rotors(drone), float(p.bend_load)).mean())
+        row["bend_deg"] = float(held_bend(drone, cfg.sim, outer_rotors(drone), float(p.bend_load)).mean())
         rows.append({"series": "scaling", **row})
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "bench_sim.csv", index=False)

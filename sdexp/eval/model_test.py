@@ -158,7 +158,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     retried with the next seed; the longest one is kept."""
     from tqdm import tqdm
 
-    from sdexp.model.generate import commands
+    from sdexp.model.generate import commands, hover_centre
     from sdexp.sim.drone import build_drone
     from sdexp.sim.sensors import decompose
     from sdexp.sim.simulator import Simulator
@@ -167,9 +167,10 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     dt = float(cfg.sim.control_dt)
     steps = int(round(seconds / dt))
     best = None
+    centre = hover_centre(drone, cfg.data, cfg.sim)
     for attempt in range(attempts):
         sim = Simulator(drone, cfg.sim, cfg.noise, seed + attempt)
-        cmds = commands(drone, cfg.data, float(cfg.sim.gravity), dt, np.random.default_rng(seed + attempt))
+        cmds = commands(drone, cfg.data, centre, dt, np.random.default_rng(seed + attempt))
         xs = [decompose(sim.reset(), drone.layout).x]
         us = []
         for _ in tqdm(range(steps), desc="test flight", leave=False, disable=None):

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, flight_table
-from sdexp.eval.statics import held_bend, outer_rotors
+from sdexp.sim.statics import held_bend, outer_rotors
 
 
 def folding_wings(r_hat: np.ndarray) -> np.ndarray:
@@ -26,11 +26,11 @@ def folding_wings(r_hat: np.ndarray) -> np.ndarray:
     return np.flatnonzero(np.abs(r_hat[:, 2]) > np.abs(r_hat[:, 0]))
 
 
-def fold_limit(drone, sim_cfg, noise_cfg, wings: np.ndarray, seconds: float = 3.0) -> float:
+def fold_limit(drone, sim_cfg, wings: np.ndarray, seconds: float = 3.0) -> float:
     """The bend (deg) the folding wings hold under the strongest deformation pattern (no net lift
     or tilting torque) that favours their rotors (``statics.held_bend``): an upper bound on the
     fold any controller can ask of this body (the least of the folding wings' bends)."""
-    bends = held_bend(drone, sim_cfg, noise_cfg, outer_rotors(drone, along_z=True), None, seconds)
+    bends = held_bend(drone, sim_cfg, outer_rotors(drone, along_z=True), None, seconds)
     return float(bends[wings].min())
 
 
@@ -85,7 +85,7 @@ def run(cfg, out_dir: Path) -> dict:
     pitch = np.rad2deg(a["x"][:, dyn.slices["s"]][:, wings]) if len(wings) else np.zeros((len(a["t"]), 1))
     out = {**{f"flight_{k}": v for k, v in m.items()},
            "wing_pitch_change_deg": float(pitch.min(axis=1).max() - pitch[0].min()) if len(pitch) else 0.0,
-           "fold_limit_deg": fold_limit(setup.drone, cfg.sim, cfg.noise, wings) if len(wings) else 0.0,
+           "fold_limit_deg": fold_limit(setup.drone, cfg.sim, wings) if len(wings) else 0.0,
            "width_reduction_percent": 100.0 * (1.0 - min(tab["width_z"]) / rest_width),
            "max_z_deviation_m": float(np.abs(a["x"][:, dyn.slices["p"]][:, 2]).max()),
            "hit_obstacle": hit,

@@ -96,6 +96,8 @@ def _data_spec(data) -> dict:
         spec["thrust_range"] = [lo, hi]
     if data.get("around_hover", False):
         spec["around_hover"] = True
+        if data.get("hover", "rigid") != "rigid":   # the rigid hover keeps the key it had before the option
+            spec["hover"] = data.hover
     if data.get("deform_range", 0.0) > 0:
         spec["deform_range"] = float(data.deform_range)
         spec["deform_hold_seconds"] = float(data.deform_hold_seconds)
@@ -196,8 +198,9 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     todo = [c for c in range(len(sizes)) if c not in infos]
     workers = max(1, min(workers, len(todo)))
     if todo:
-        from sdexp.model.generate import _simulator
-        _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
+        from sdexp.model.generate import _simulator, hover_centre, sim_config
+        drone, _ = _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
+        spec = {**spec, "centre": hover_centre(drone, spec["data"], sim_config(spec))}  # once, not per worker
     bar = tqdm(total=samples, initial=sum(sizes[c] for c in infos), unit="samples", smoothing=0.05,
                desc=f"data {spec['drone']['name']}", disable=None)
     t0 = time.perf_counter()

@@ -39,7 +39,7 @@ class _MlpJacobian:
 
     def __init__(self, net: ResidualMLP):
         g = lambda t: t.detach().double().numpy().copy()
-        self.W_in, self.b_in = g(net.inp.weight), g(net.inp.bias)
+        self.W_in, self.b_in = (g(net.inp.weight), g(net.inp.bias)) if net.inp is not None else (None, None)
         self.blocks = [(g(b.fc1.weight), g(b.fc1.bias), g(b.fc2.weight), g(b.fc2.bias)) for b in net.blocks]
         self.W_out, self.b_out = g(net.out.weight), g(net.out.bias)
         self.in_mean, self.in_std = g(net.in_mean), g(net.in_std)
@@ -48,7 +48,11 @@ class _MlpJacobian:
 
     def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(y, dy/dz) for one input z (n_in,)."""
-        a = self.W_in @ ((z - self.in_mean) / self.in_std) + self.b_in
+        zs = (z - self.in_mean) / self.in_std
+        if self.W_in is None:   # a linear net (hidden = 0)
+            y = self.out_mean + self.out_std * (self.W_out @ zs + self.b_out)
+            return self._add_base(z, y, (self.out_std[:, None] * self.W_out) / self.in_std)
+        a = self.W_in @ zs + self.b_in
         mask0 = a > 0
         h = a * mask0
         masks = []
@@ -64,7 +68,9 @@ class _MlpJacobian:
         for (W1, _, W2, _), (inner, outer) in zip(reversed(self.blocks), reversed(masks)):
             G = G * outer                                      # through the block's ReLU
             G = G + ((G @ W2) * inner) @ W1                    # skip + inner path
-        J = ((G * mask0) @ self.W_in) / self.in_std
+        return self._add_base(z, y, ((G * mask0) @ self.W_in) / self.in_std)
+
+    def _add_base(self, z, y, J):
         if self.base is not None:
             y = y + z[self.base]
             J[np.arange(len(self.base)), self.base] += 1.0

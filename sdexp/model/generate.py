@@ -8,8 +8,9 @@ same chunk generated longer.
 
 Every episode starts from ``Simulator.reset()`` (the undeformed drone at rest), every rotor holds
 a thrust drawn from U[-Tmax, Tmax] for ``data.hold_seconds``, then a new draw (the paper's
-recipe; ``data.thrust_range`` narrows the draw and ``data.around_hover`` centres it on the
-rest shape's minimum-norm hover thrust; ``data.deform_range`` adds a thrust pattern held for
+recipe; ``data.thrust_range`` narrows the draw and ``data.around_hover`` centres it on a hover
+thrust, the rest shape's minimum-norm one or, with ``data.hover: shape``, the one that holds
+the body flattest; ``data.deform_range`` adds a thrust pattern held for
 ``data.deform_hold_seconds`` that puts no net lift or tilting torque on the rest shape, so that
 the data visit held deformations in level flight). One transition per
 control step: the state decomposed from the readings before the step, the command, and the
@@ -78,16 +79,22 @@ def _euler_and_rates(rot, omega, idx):
     return ang, rate
 
 
+def sim_config(spec: dict):
+    """The simulator config of a data spec, single-threaded."""
+    from sdexp.config import SimConfig
+    return OmegaConf.merge(OmegaConf.structured(SimConfig), spec["sim"], {"threads": 1})
+
+
 def _simulator(spec: dict):
     """Build (or reuse, within this process) the drone and a single-threaded simulator."""
-    from sdexp.config import DroneConfig, NoiseConfig, SimConfig
+    from sdexp.config import DroneConfig, NoiseConfig
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
 
     tag = json.dumps([spec["drone"], spec["sim"], spec["noise"], spec["cache_dir"]], sort_keys=True, default=str)
     if _CACHED.get("tag") != tag:
         drone_cfg = OmegaConf.merge(OmegaConf.structured(DroneConfig), spec["drone"])
-        sim_cfg = OmegaConf.merge(OmegaConf.structured(SimConfig), spec["sim"], {"threads": 1})
+        sim_cfg = sim_config(spec)
         noise_cfg = OmegaConf.merge(OmegaConf.structured(NoiseConfig), spec["noise"])
         drone = build_drone(drone_cfg, spec["cache_dir"])
         sim = Simulator(drone, sim_cfg, noise_cfg, 0)
@@ -103,15 +110,26 @@ def _deformation(rng: np.random.Generator, patterns: np.ndarray, largest: float)
     return rng.uniform(0.0, largest) * v / np.abs(v).max()
 
 
-def commands(drone, data, gravity: float, dt: float, rng: np.random.Generator) -> Iterator[np.ndarray]:
+def hover_centre(drone, data, sim_cfg) -> np.ndarray | float:
+    """The centre of the data recipe's thrust draw: 0 (the paper's), or with ``around_hover`` the
+    rest shape's hover thrust (``hover: rigid``) or the one that holds the body flattest
+    (``hover: shape``, sim.statics.shape_hover_thrust: a few seconds of simulation)."""
+    if not data.get("around_hover"):
+        return 0.0
+    if data.get("hover", "rigid") == "shape":
+        from sdexp.sim.statics import shape_hover_thrust
+        return shape_hover_thrust(drone, sim_cfg)
+    return rest_hover_thrust(drone, float(sim_cfg["gravity"]))
+
+
+def commands(drone, data, centre: np.ndarray | float, dt: float, rng: np.random.Generator) -> Iterator[np.ndarray]:
     """The data recipe's command at every control step of one episode (``data``: the data config
-    or its spec dict): per rotor U[lo, hi] x Tmax held ``hold_seconds``, around the hover thrust
-    if ``around_hover``, plus a deformation pattern held ``deform_hold_seconds`` if
+    or its spec dict; ``centre``: hover_centre's): per rotor ``centre`` + U[lo, hi] x Tmax held
+    ``hold_seconds``, plus a deformation pattern held ``deform_hold_seconds`` if
     ``deform_range`` > 0. Validates eagerly; yields forever."""
     tmax, m = drone.max_thrust, drone.num_rotors
     hold = max(1, int(round(data["hold_seconds"] / dt)))
     lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
-    centre = rest_hover_thrust(drone, gravity) if data.get("around_hover") else 0.0
     deform = tmax * float(data.get("deform_range", 0.0))
     patterns, deform_hold = None, 1
     if deform > 0:
@@ -139,10 +157,10 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     float32 arrays (``episode`` local to the chunk), and a summary of how the episodes ended."""
     t_start, cpu_start = time.perf_counter(), time.process_time()
     drone, sim = _simulator(spec)
+    centre = spec["centre"] if "centre" in spec else hover_centre(drone, spec["data"], sim_config(spec))
     layout = drone.layout
     data = spec["data"]
     dt = float(spec["sim"]["control_dt"])
-    gravity = float(spec["sim"]["gravity"])
     ep_steps = max(1, int(round(data["episode_seconds"] / dt)))
     region2 = float(data["region"]) ** 2
     w = widths(layout.dim, layout.n_s, drone.num_rotors)
@@ -157,7 +175,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     i, ep, empty, last_report = 0, 0, 0, 0
     while i < n:
         ss_thrust, ss_noise = np.random.SeedSequence(spec["seed"], spawn_key=(chunk, ep)).spawn(2)
-        cmds = commands(drone, data, gravity, dt, np.random.default_rng(ss_thrust))
+        cmds = commands(drone, data, centre, dt, np.random.default_rng(ss_thrust))
         sim.rng = np.random.default_rng(ss_noise)
         r = sim.reset()
         st = decompose(r, layout)

@@ -15,6 +15,10 @@ not a near-copy of its input. ``raw_output`` gives r, the quantity the training 
 on. The standardisation statistics are buffers fitted on the training split
 (:meth:`ResidualMLP.fit_scaling`), so a saved state dict is self-contained.
 No normalisation layers (batch/layer norm) anywhere, as the supplement says.
+
+``hidden = 0`` (``model.linear`` lists the nets built so): no hidden layers, r = W_out z + b_out,
+a linear model trained and used exactly like the MLPs (why the rod needs it: README "Fixed-point
+ablation").
 """
 from __future__ import annotations
 
@@ -44,10 +48,12 @@ class ResidualMLP(nn.Module):
         super().__init__()
         if n_in < 1 or n_out < 1:
             raise ValueError(f"ResidualMLP needs n_in >= 1 and n_out >= 1, got {n_in}, {n_out}")
+        if hidden == 0:
+            blocks = 0   # a linear model
         self.n_in, self.n_out, self.hidden, self.n_blocks = n_in, n_out, hidden, blocks
-        self.inp = nn.Linear(n_in, hidden)
+        self.inp = nn.Linear(n_in, hidden) if hidden else None
         self.blocks = nn.ModuleList(ResidualBlock(hidden) for _ in range(blocks))
-        self.out = nn.Linear(hidden, n_out)
+        self.out = nn.Linear(hidden or n_in, n_out)
         if base is not None:
             base = list(base)
             if len(base) != n_out or not all(0 <= b < n_in for b in base):
@@ -82,7 +88,9 @@ class ResidualMLP(nn.Module):
 
     # ---------------------------------------------------------------------------- forward
     def raw_output(self, x: torch.Tensor) -> torch.Tensor:
-        h = torch.relu(self.inp((x - self.in_mean) / self.in_std))
+        h = (x - self.in_mean) / self.in_std
+        if self.inp is not None:
+            h = torch.relu(self.inp(h))
         for block in self.blocks:
             h = block(h)
         return self.out(h)

@@ -57,7 +57,7 @@ from sdexp.model.networks import ResidualMLP
 
 FORMAT_VERSION = 5   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key
 MODEL_KEYS = ("hidden", "blocks", "epochs", "batch_size", "lr", "lr_decay", "lr_step", "loss", "keep_best",
-              "horizon")
+              "horizon", "linear")
 
 
 @dataclass(frozen=True)
@@ -217,7 +217,8 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
         raise UserError(f"network {name!r}: {len(X_tr)} training transitions, fewer than model.batch_size = {bs}")
     X_tr, Y_tr = torch.from_numpy(np.ascontiguousarray(X_tr)), torch.from_numpy(np.ascontiguousarray(Y_tr))
     X_va, Y_va = torch.from_numpy(np.ascontiguousarray(X_va)), torch.from_numpy(np.ascontiguousarray(Y_va))
-    net = ResidualMLP(X_tr.shape[1], Y_tr.shape[1], int(model_cfg.hidden), int(model_cfg.blocks), base)
+    hidden = 0 if name in model_cfg.linear else int(model_cfg.hidden)   # 0: a linear net
+    net = ResidualMLP(X_tr.shape[1], Y_tr.shape[1], hidden, int(model_cfg.blocks), base)
     net.fit_scaling(X_tr, Y_tr)
     with torch.no_grad():  # standardised targets once, not per batch
         T_tr, T_va = net.target_raw(X_tr, Y_tr), net.target_raw(X_va, Y_va)
@@ -278,6 +279,9 @@ def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Se
         del model["horizon"]     # the paper's one-frame targets keep the key they had before the option
     else:
         keys |= {"u"}            # the rows design() keeps depend on it
+    model["linear"] = sorted(model["linear"])
+    if not model["linear"]:
+        del model["linear"]      # nor do the all-MLP nets
     payload = {
         "data": dataset_key(data, sorted(keys)),
         "model": model,
@@ -367,7 +371,9 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
 
 def _plain(model_cfg) -> SimpleNamespace:
     get = (lambda k: model_cfg[k]) if hasattr(model_cfg, "__getitem__") else (lambda k: getattr(model_cfg, k))
-    return SimpleNamespace(**{k: get(k) for k in (*MODEL_KEYS, "threads")})
+    plain = {k: get(k) for k in (*MODEL_KEYS, "threads")}
+    plain["linear"] = list(plain["linear"])   # not an OmegaConf list in the worker processes
+    return SimpleNamespace(**plain)
 
 
 def _train_job(*args, report):

@@ -246,6 +246,22 @@ def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     off = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
                    "data.around_hover=false")
     assert dataset_key(dataset_spec(off, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
+    rigid = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
+                     "data.hover=rigid")
+    assert dataset_key(dataset_spec(rigid, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))
+
+
+def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.statics import shape_hover_thrust
+
+    cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
+                   "data.hover=shape")
+    u = load_dataset(cfg, CHUNK).arrays["u"]
+    shape = shape_hover_thrust(build_drone(cfg.drone, cfg.cache_dir), cfg.sim)
+    assert np.all(np.abs(u - shape) <= 0.01 * float(cfg.drone.max_thrust) + 1e-5)
+    rigid = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]")
+    assert dataset_key(dataset_spec(rigid, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
 
 def test_obstacles_are_scenery_not_part_of_the_data(reference):

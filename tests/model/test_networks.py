@@ -238,3 +238,24 @@ def test_horizon_is_in_the_model_key_only_when_not_one():
     cfg = model_cfg()
     legacy = {k: cfg[k] for k in training.MODEL_KEYS if k != "horizon"}
     assert k1 == training.models_key(data, OmegaConf.create({**legacy, "horizon": 1}), 0, 0.2, DECOMPOSED)
+
+
+def test_linear_nets_fit_a_linear_law_and_key_only_when_asked():
+    """model.linear: those nets are one affine map (no hidden layer); on an exactly linear law
+    they beat the MLPs' "no change" baseline as the MLPs do, and the key changes only when the
+    list is not empty (the all-MLP nets keep theirs)."""
+    data = synthetic_dataset(n=6000)
+    res = train_models(data, model_cfg(epochs=6, linear=["d", "h"]), 0, None, 0.2, progress=False)
+    assert res.nets["d"].inp is None and len(res.nets["d"].blocks) == 0
+    assert res.nets["g"].inp is not None
+    lin = [m for m in res.nets["h"].modules() if isinstance(m, nn.Linear)]
+    assert len(lin) == 1 and lin[0].in_features == res.nets["h"].n_in
+    for name in ("d", "h"):
+        assert res.history[name]["val_rel_l1"].iloc[-1] < 0.25, name
+    clone = ResidualMLP.from_saved(res.nets["d"].spec(), res.nets["d"].state_dict())
+    x = torch.randn(5, res.nets["d"].n_in)
+    assert torch.allclose(clone(x), res.nets["d"](x))
+    base = training.models_key(data, model_cfg(), 0, 0.2, DECOMPOSED)
+    assert base == training.models_key(data, model_cfg(linear=[]), 0, 0.2, DECOMPOSED)
+    assert training.models_key(data, model_cfg(linear=["h", "d"]), 0, 0.2, DECOMPOSED) == \
+        training.models_key(data, model_cfg(linear=["d", "h"]), 0, 0.2, DECOMPOSED) != base

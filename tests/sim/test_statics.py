@@ -1,0 +1,31 @@
+"""Open-loop statics of a soft body: the shape-holding hover thrust (data.hover: shape)."""
+import numpy as np
+from hydra import compose, initialize_config_dir
+
+from sdexp.cli import CONF_DIR
+from sdexp.sim.drone import build_drone
+from sdexp.sim.geometry import rest_hover_thrust, rigid_body, wrench_matrix
+from sdexp.sim.statics import hold, shape_hover_thrust
+
+
+def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):
+    """The rod's mass is spread along it, its rotors are not: the rigid hover thrust (weight
+    split evenly) curls its ends. The shape-holding thrust differs from it by a pattern with no
+    net lift or torque on the rest shape (it still just carries the weight, level), is mirror
+    symmetric like the rod, and holds the bends several times smaller."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["drone=rod", f"cache_dir={cache_dir}"])
+    drone = build_drone(cfg.drone, cfg.cache_dir)
+    rigid = rest_hover_thrust(drone, float(cfg.sim.gravity))
+    shape = shape_hover_thrust(drone, cfg.sim)
+    fem = drone.fem
+    _, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
+    W = wrench_matrix(pos, dirs)[[1, 2]]          # 2D: lift and torque
+    np.testing.assert_allclose(W @ shape, W @ rigid, atol=1e-6)
+    np.testing.assert_allclose((W @ shape)[0], float(cfg.drone.mass) * float(cfg.sim.gravity), rtol=0.02)
+    np.testing.assert_allclose(shape, shape[::-1], rtol=1e-2)
+    assert np.abs(shape).max() <= drone.max_thrust
+    bent_rigid = np.abs(hold(drone, cfg.sim, rigid, 2.0)).max()
+    bent_shape = np.abs(hold(drone, cfg.sim, shape, 2.0)).max()
+    assert bent_rigid > np.deg2rad(30)
+    assert bent_shape < 0.3 * bent_rigid
