@@ -20,6 +20,8 @@ class MeshConfig:
     edge_length: float = 0.2   # target element edge length (m); the resolution knob
     stop_energy: float = 10.0  # fTetWild quality target (3D only); lower = better tets, slower
     coarsen: bool = False      # fTetWild drops every vertex it can while keeping the quality
+    mirror: List[str] = field(default_factory=list)  # 3D: mesh one cell, reflect across x = 0 / z = 0
+                                                     # (sdexp.sim.mirror); [] = mesh the whole body
 
 
 @dataclass
@@ -222,6 +224,9 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
     _check(d.thickness is None or d.thickness > 0, "drone.thickness", d.thickness, "> 0 m")
     _check(d.mesh.edge_length > 0, "drone.mesh.edge_length", d.mesh.edge_length, "> 0 m")
+    _check(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
+                                 and set(d.mesh.mirror) <= {"x", "z"}),
+           "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
     _check(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
     _check(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
            "null or in (0, sim.control_dt]")

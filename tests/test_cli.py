@@ -71,6 +71,8 @@ def test_misspelled_key_is_an_error():
     ("model.linear=[d,q]", "model.linear"),
     ("data.hover=bent", "data.hover"),
     ("data.around_hover=false data.hover=shape", "data.hover"),
+    ("drone=rod drone.mesh.mirror=[x]", "drone.mesh.mirror"),
+    ("drone.mesh.mirror=[y]", "drone.mesh.mirror"),
 ])
 def test_non_physical_values_name_the_key(override, key):
     with pytest.raises(UserError, match=key.replace(".", r"\.")):

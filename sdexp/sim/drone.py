@@ -77,15 +77,29 @@ def make_shape(cfg) -> Shape:
 
 def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``shape`` with the ``drone.mesh`` settings, through the cache."""
+    planes = list(mesh.get("mirror", []))
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
                "h": shape.holes.round(12).tolist(), "edge": mesh.edge_length,
                "tetwild": [mesh.stop_energy, mesh.coarsen] if shape.dim == 3 else None}
+    if planes:   # the whole-body meshes keep the keys they had before the option
+        from sdexp.sim.mirror import asymmetric_parts
+        bad = asymmetric_parts(shape, planes)
+        if bad:
+            raise UserError(f"drone.mesh.mirror = {planes}: the design is not symmetric there, its "
+                            f"{', '.join(bad)} do not mirror onto themselves")
+        payload["mirror"] = planes
 
     def make() -> dict[str, np.ndarray]:
         if shape.dim == 3:
             from sdexp.sim.tetmesh import tet_mesh
-            pts, el = tet_mesh(shape.vertices, shape.faces, mesh.edge_length, mesh.stop_energy,
-                               mesh.coarsen)
+
+            def tets(vertices, faces):
+                return tet_mesh(vertices, faces, mesh.edge_length, mesh.stop_energy, mesh.coarsen)
+            if planes:
+                from sdexp.sim.mirror import AXES, symmetric_mesh
+                pts, el = symmetric_mesh(shape.cell_surface(tuple(AXES[p] for p in planes)), planes, tets)
+            else:
+                pts, el = tets(shape.vertices, shape.faces)
         else:
             from sdexp.sim.trimesh import tri_mesh
             pts, el = tri_mesh(shape.vertices, shape.faces, shape.holes, mesh.edge_length)

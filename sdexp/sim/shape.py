@@ -7,6 +7,7 @@ to the mesh vertices of the upper surface within a radius.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -25,3 +26,6 @@ class Shape:
     imu_normals: np.ndarray       # (num_sensors, dim) unit surface normal at each IMU at rest
     frame_imus: np.ndarray        # (k, dim) IMU anchors whose averaged frame defines e (k=1: centre)
     frame_normals: np.ndarray     # (k, dim)
+    # 3D plates: axes (0: x, 2: z) -> closed surface of the part on the positive side of the
+    # mirror planes through the centre normal to them (drone.mesh.mirror, sdexp.sim.mirror)
+    cell_surface: Optional[Callable[[tuple], tuple]] = None

@@ -91,6 +91,32 @@ def _circle(radius: float) -> np.ndarray:
     return radius * np.c_[np.cos(t), np.sin(t)]
 
 
+def _closed_loops(loops: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Vertices and segments (a list of (k, 2) index arrays) of closed polylines."""
+    segments, start = [], 0
+    for loop in loops:
+        k = np.arange(len(loop))
+        segments.append(np.c_[start + k, start + (k + 1) % len(loop)])
+        start += len(loop)
+    return np.vstack(loops), segments
+
+
+def _split_at_zero(loop: np.ndarray, cols: list[int]) -> np.ndarray:
+    """The closed polyline ``loop`` with a vertex wherever it crosses coordinate c = 0 for c in
+    ``cols``, exactly 0 there (points within 1e-12 of a plane are put on it)."""
+    loop = np.where(np.abs(loop) < 1e-12, 0.0, loop)
+    for c in cols:
+        out = []
+        for p, q in zip(loop, np.roll(loop, -1, axis=0)):
+            out.append(p)
+            if p[c] * q[c] < 0:
+                x = p + (q - p) * (p[c] / (p[c] - q[c]))
+                x[c] = 0.0
+                out.append(x)
+        loop = np.array(out)
+    return loop
+
+
 def _resample(line: np.ndarray) -> np.ndarray:
     """Points about _SEGMENT apart along an open polyline, equal arc length, ends kept."""
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
@@ -147,25 +173,23 @@ class _Plate:
 
     def __init__(self, design: _Design, size: tuple[float, float, float]):
         self.d = design
-        points = np.vstack(design.loops)
-        segments, start = [], 0
-        for loop in design.loops:
-            k = np.arange(len(loop))
-            segments.append(np.c_[start + k, start + (k + 1) % len(loop)])
-            start += len(loop)
+        points, segments = _closed_loops(design.loops)
         if design.profile:  # a vertex at the centre, where the dome peaks and a rotor sits
             points = np.vstack([points, [[0.0, 0.0]]])
-        pslg = {"vertices": points, "segments": np.vstack(segments)}
-        if design.hole_points:
-            pslg["holes"] = np.array(design.hole_points, dtype=float)
-        # Flat, even caps need no inner vertex (fTetWild would spend seconds simplifying them
-        # away); curved or tapered ones do, to follow the surface.
-        opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if design.profile or design.taper else "p"
-        tri = triangle.triangulate(pslg, opts)
-        self.planar, self.tris = tri["vertices"], tri["triangles"].astype(np.int64)
+        self.planar, self.tris = self._triangulate(points, np.vstack(segments))
         self.scale, self.shift = np.ones(2), np.zeros(2)
         self.g = design.profile(design.rise) if design.profile else _flat
         self._fit(np.asarray(size, dtype=float))
+
+    def _triangulate(self, points: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pslg = {"vertices": points, "segments": segments}
+        if self.d.hole_points:
+            pslg["holes"] = np.array(self.d.hole_points, dtype=float)
+        # Flat, even caps need no inner vertex (fTetWild would spend seconds simplifying them
+        # away); curved or tapered ones do, to follow the surface.
+        opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if self.d.profile or self.d.taper else "p"
+        tri = triangle.triangulate(pslg, opts)
+        return tri["vertices"], tri["triangles"].astype(np.int64)
 
     def _fit(self, size: np.ndarray) -> None:
         """Scale x and z, shift, and (curved drones) raise until the bounding box is size."""
@@ -215,16 +239,21 @@ class _Plate:
             t *= self.d.taper((q - self.shift) / self.scale)
         return t[:, None]
 
-    def _surface_vertices(self) -> np.ndarray:
-        q = self.planar * self.scale + self.shift
+    def _surface_vertices(self, planar: np.ndarray | None = None) -> np.ndarray:
+        q = (self.planar if planar is None else planar) * self.scale + self.shift
         mid, n = self._mid(q)
         t = self._half_thickness(q)
         return np.vstack([mid + t * n, mid - t * n])
 
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
         """Closed surface: top cap (normal +y), bottom cap, walls along the boundary."""
-        n = len(self.planar)
-        tri = self.tris
+        return self._closed(self.planar, self.tris)
+
+    def _closed(self, planar: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The closed surface over the planar triangles ``tri`` (vertices ``planar``)."""
+        used, tri = np.unique(tri, return_inverse=True)
+        planar, tri = planar[used], tri.reshape(-1, 3)
+        n = len(planar)
         # Triangle returns triangles counter-clockwise in (x, z), whose normal is -y.
         bottom = tri + n
         top = tri[:, [0, 2, 1]]
@@ -233,7 +262,30 @@ class _Plate:
         _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
         a, b = edges[counts[inverse.ravel()] == 1].T   # boundary, as the bottom cap runs it
         walls = np.concatenate([np.c_[b + n, a + n, a], np.c_[b + n, a, b]])
-        return self._surface_vertices(), np.concatenate([top, bottom, walls]).astype(np.int32)
+        return self._surface_vertices(planar), np.concatenate([top, bottom, walls]).astype(np.int32)
+
+    def cell_surface(self, axes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Closed surface of the part of the plate on the positive side of the mirror planes
+        through the centre normal to ``axes`` (0: x, 2: z): the cell that, meshed and reflected
+        across them (``sdexp.sim.mirror``), gives a mesh exactly as symmetric as the design.
+        The outline is split where it crosses a plane and the plane's chords through the body
+        are constrained segments, so no planar triangle straddles a plane."""
+        if not np.all(np.abs(self.shift) < 1e-9):
+            raise ValueError(f"{self.d.name}: the planar body is not centred; it cannot be mirrored")
+        cols = [{0: 0, 2: 1}[a] for a in axes]   # planar (x, z) columns of the cut axes
+        points, segments = _closed_loops([_split_at_zero(loop, cols) for loop in self.d.loops])
+        centre = np.zeros((1, 2))
+        if self.d.profile or len(cols) == 2:   # the dome's peak, or where the two planes cross
+            points = np.vstack([points, centre])
+        for c in cols:   # chords of the plane through the body, between consecutive crossings
+            on = np.flatnonzero(points[:, c] == 0.0)
+            on = on[np.argsort(points[on, 1 - c])]
+            mid = 0.5 * (points[on[:-1]] + points[on[1:]])
+            inside = self.d.inside(mid) & (np.diff(points[on, 1 - c]) > 0)
+            segments.append(np.c_[on[:-1], on[1:]][inside])
+        planar, tris = self._triangulate(points, np.vstack(segments))
+        centroid = planar[tris].mean(axis=1)
+        return self._closed(planar, tris[np.all(centroid[:, cols] > 0, axis=1)])
 
     def lift(self, xz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points of the upper surface at planar positions xz (k, 2), its normals there, and
@@ -281,7 +333,7 @@ def _finish(plate: _Plate, radii: np.ndarray, angles: np.ndarray, num_sensors: i
         frame, frame_normals = _anchors(plate, "centre IMU", plate.shift[None])
     return Shape(dim=3, vertices=vertices, faces=faces, holes=np.zeros((0, 3)), center=center,
                  rotors=rotors, rotor_normals=rotor_normals, imus=imus, imu_normals=imu_normals,
-                 frame_imus=frame, frame_normals=frame_normals)
+                 frame_imus=frame, frame_normals=frame_normals, cell_surface=plate.cell_surface)
 
 
 # ---------------------------------------------------------------------------------------
