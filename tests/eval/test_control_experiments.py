@@ -81,7 +81,7 @@ def test_the_fold_limit_is_inverse_in_the_modulus_while_the_bend_is_small(cache_
     from sdexp.sim.drone import build_drone
 
     folds = []
-    for modulus in (24000.0, 48000.0):
+    for modulus in (48000.0, 96000.0):   # 16x and 32x the star's: small bends
         cfg = make_cfg("experiment=obstacle", f"cache_dir={cache_dir}", f"drone.youngs_modulus={modulus}")
         drone = build_drone(cfg.drone, cfg.cache_dir)
         folds.append(fold_limit(drone, cfg.sim, folding_wings(drone.layout.r_hat), seconds=2.0))
