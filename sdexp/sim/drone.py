@@ -97,7 +97,11 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
                 return tet_mesh(vertices, faces, mesh.edge_length, mesh.stop_energy, mesh.coarsen)
             if planes:
                 from sdexp.sim.mirror import AXES, symmetric_mesh
-                pts, el = symmetric_mesh(shape.cell_surface(tuple(AXES[p] for p in planes)), planes, tets)
+                try:
+                    cell = shape.cell_surface(tuple(AXES[p] for p in planes))
+                except ValueError as err:
+                    raise UserError(f"drone.mesh.mirror = {planes}: {err}") from None
+                pts, el = symmetric_mesh(cell, planes, tets)
             else:
                 pts, el = tets(shape.vertices, shape.faces)
         else:

@@ -75,6 +75,18 @@ def test_a_mirrored_mesh_is_the_design_reflected_onto_itself(thin_star):
     assert np.all(volumes(rest, drone.fem.elems) > 0)
 
 
+@pytest.mark.parametrize("drone, planes", [("donut", "[x,z]"), ("orange_peel", "[x]")])
+def test_a_ring_and_a_bowl_mirror_too(cache_dir, drone, planes):
+    """The hole of the donut (chords only through the ring) and the orange peel's curved bowl,
+    symmetric about x = 0 only (five petals)."""
+    cfg = make_cfg(f"drone={drone}", f"drone.mesh.mirror={planes}", f"cache_dir={cache_dir}")
+    rest = build_drone(cfg.drone, cache_dir).fem.rest
+    for name in planes.strip("[]").split(","):
+        flip = np.where(np.arange(3) == {"x": 0, "z": 2}[name], -1.0, 1.0)
+        gap = np.min(np.linalg.norm((rest * flip)[:, None] - rest[None], axis=2), axis=1)
+        assert gap.max() < 1e-12
+
+
 def test_a_mirrored_star_folds_both_wings_alike_and_does_not_yaw(thin_star):
     """A mirror-symmetric body under a mirror-symmetric load: no yaw torque, equal folds (the
     whole-body fTetWild mesh yaws at 1-3 deg/s here and folds its wings 71 and 77 deg)."""

@@ -270,13 +270,12 @@ class _Plate:
         across them (``sdexp.sim.mirror``), gives a mesh exactly as symmetric as the design.
         The outline is split where it crosses a plane and the plane's chords through the body
         are constrained segments, so no planar triangle straddles a plane."""
-        if not np.all(np.abs(self.shift) < 1e-9):
-            raise ValueError(f"{self.d.name}: the planar body is not centred; it cannot be mirrored")
         cols = [{0: 0, 2: 1}[a] for a in axes]   # planar (x, z) columns of the cut axes
+        if not np.all(np.abs(self.shift[cols]) < 1e-9):
+            raise ValueError(f"{self.d.name}: the body is not centred across the mirror plane(s)")
         points, segments = _closed_loops([_split_at_zero(loop, cols) for loop in self.d.loops])
-        centre = np.zeros((1, 2))
         if self.d.profile or len(cols) == 2:   # the dome's peak, or where the two planes cross
-            points = np.vstack([points, centre])
+            points = np.vstack([points, np.zeros((1, 2))])
         for c in cols:   # chords of the plane through the body, between consecutive crossings
             on = np.flatnonzero(points[:, c] == 0.0)
             on = on[np.argsort(points[on, 1 - c])]
