@@ -32,6 +32,7 @@ from sdexp.discrepancy.logs import read_logs
 from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.errors import UserError
+from sdexp.sim.drone import drone_key
 
 FLOOR_FORMAT = 2
 
@@ -47,7 +48,7 @@ def steps_of(dcfg, dt: float) -> tuple[int, int, int]:
 
 
 def model_key(drone_cfg, sim_cfg, noise_cfg) -> dict:
-    return {"drone": _plain(drone_cfg), "sim": _plain(sim_cfg), "noise": _plain(noise_cfg)}
+    return {"drone": drone_key(_plain(drone_cfg)), "sim": _plain(sim_cfg), "noise": _plain(noise_cfg)}
 
 
 def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: str, seed: int = 777_000):

@@ -50,6 +50,7 @@ from omegaconf import OmegaConf
 from sdexp.cache import atomic_write, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
+from sdexp.sim.drone import drone_key
 
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
@@ -116,7 +117,7 @@ def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
     if not sim.get("effects"):
         sim.pop("effects", None)  # the nominal simulator: same key as before effects existed
     return {
-        "drone": OmegaConf.to_container(cfg.drone, resolve=True),
+        "drone": drone_key(OmegaConf.to_container(cfg.drone, resolve=True)),
         "sim": sim,
         "noise": OmegaConf.to_container(cfg.noise, resolve=True),
         "data": _data_spec(data),

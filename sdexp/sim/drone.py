@@ -75,6 +75,13 @@ def make_shape(cfg) -> Shape:
     return shape
 
 
+def drone_key(drone: dict) -> dict:
+    """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
+    its default is dropped, so a drone meshed as before keeps what was cached before the option."""
+    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k == "mirror" and not v)}
+    return {**drone, "mesh": mesh}
+
+
 def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``shape`` with the ``drone.mesh`` settings, through the cache."""
     planes = list(mesh.get("mirror", []))

@@ -305,3 +305,13 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
     monkeypatch.setattr(generate, "deformation_patterns", lambda d: np.zeros((d.num_rotors, 0)))
     with pytest.raises(UserError, match="data.deform_range"):
         generate.generate_chunk(dataset_spec(cfg, CHUNK), 0, 10)
+
+
+def test_a_drone_meshed_whole_keeps_the_data_key_it_had_before_the_mirror_option(tmp_path):
+    """drone.mesh.mirror = [] (the default) is left out of the key, so data cached before the
+    option are still found; a mirrored mesh is another body and gets another key."""
+    cfg = make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[]")
+    spec = dataset_spec(cfg, CHUNK)
+    assert "mirror" in cfg.drone.mesh and "mirror" not in spec["drone"]["mesh"]
+    mirrored = dataset_spec(make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[x,z]"), CHUNK)
+    assert dataset_key(mirrored) != dataset_key(spec)
