@@ -15,6 +15,9 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from sdexp.errors import UserError
 
 
+ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.fem)
+
+
 @dataclass
 class MeshConfig:
     edge_length: float = 0.2   # target element edge length (m); the resolution knob
@@ -63,6 +66,7 @@ class SimConfig:
     max_speed: float = 100.0             # m/s; faster vertices count as a blow-up
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
     threads: int = 0                     # FEM kernel threads; 0 = auto (2 for big meshes)
+    element: str = "linear"              # linear (4-node tets / 3-node triangles) | quadratic (10 / 6 nodes)
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.effects), each {name|_target_, params}
 
 
@@ -232,6 +236,7 @@ def validate(cfg: DictConfig | Config) -> None:
            "null or in (0, sim.control_dt]")
     _check(0 < s.stability_safety <= 1, "sim.stability_safety", s.stability_safety, "in (0, 1]")
     _check(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
+    _check(s.element in ELEMENTS, "sim.element", s.element, " or ".join(ELEMENTS))
     _check(s.friction >= 0, "sim.friction", s.friction, ">= 0")
     for i, b in enumerate(s.obstacles):
         _check(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),
