@@ -184,6 +184,21 @@ class DiscrepancyConfig:
 
 
 @dataclass
+class FlightConfig:
+    """When a controlled flight (sdexp.control.rollout.fly) is lost: the same limits for every
+    controller and task. Past either, the episode ends as ``loss_of_control`` with its reason and
+    time, next to the simulator's blow-ups and the controller's failures (README "Metrics")."""
+    max_tilt_deg: Optional[float] = 90.0  # angle between the body's up axis (the frame IMU's Y) and
+                                          # world +Y; past 90 deg the rotors push the body down: the
+                                          # paper's "illegal configuration". null: no tilt limit
+    arena_margin: Optional[float] = 10.0  # m: the measured position may stray this far from the box
+                                          # spanned by the task's start and its goal positions over the
+                                          # task (p_goal(0), p_goal(seconds)); 10 m is over 3x the
+                                          # SOTA task's 3 m legs, so only a flight gone astray leaves.
+                                          # null: no arena
+
+
+@dataclass
 class ExperimentConfig:
     name: str = MISSING
     params: Dict[str, Any] = field(default_factory=dict)
@@ -200,6 +215,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     discrepancy: DiscrepancyConfig = field(default_factory=DiscrepancyConfig)
+    flight: FlightConfig = field(default_factory=FlightConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
@@ -271,6 +287,10 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
     _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
     _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
+    f = cfg.flight
+    _check(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
+           "null or in (0, 180] deg")
+    _check(f.arena_margin is None or f.arena_margin > 0, "flight.arena_margin", f.arena_margin, "null or > 0 m")
     nc = c.neural
     _check(nc.iterations >= 1 and nc.batch >= 1 and nc.horizon >= 1, "control.neural.iterations/batch/horizon",
            (nc.iterations, nc.batch, nc.horizon), ">= 1 each")

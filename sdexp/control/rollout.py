@@ -2,14 +2,25 @@
 
 ``fly`` releases the drone at the task's start, then every control step: readings -> decomposed
 state -> controller -> command clipped to [-Tmax, Tmax] -> simulator. The episode ends early on
-a simulator failure (blow-up) or a controller failure (no stabilising Riccati solution, a
-non-finite command); either is recorded, never raised.
+  a simulator failure (blow-up): "simulator: <reason>";
+  a controller failure (no stabilising Riccati solution, a non-finite command): "controller: ...";
+  a loss of control, the same limits for every controller (config ``flight``, judged on the
+  noise-free decomposed state recorded after each step): the body tilted more than
+  ``max_tilt_deg`` from upright ("loss_of_control: tilt 93.2 deg > 90"), or the measured
+  position farther than ``arena_margin`` from the box spanned by the task's start and its goal
+  positions ("loss_of_control: left the arena, ...": ``arena``). The paper's survival time runs
+  "before illegal configurations are encountered"; a flight that flips or flies off is one.
+Each is recorded with its time, never raised. A loss-of-control step is recorded (the state that
+crossed the limit is the flight's last); a blow-up step is not (its state is not sane).
 
 Metrics (README "Metrics"):
   survival_time   s flown before the episode ended (the full duration if it did not);
+  survived        no failure of any kind; ``failure`` its reason ("" if none);
   final_error     m, |p - p_goal| at the last recorded step (noise-free readings);
   thrust_usage    N, sum over control steps and rotors of |commanded thrust| (clipped), the
-                  paper's "thrust usage"; ``thrust_per_second`` divides it by survival_time.
+                  paper's "thrust usage"; ``thrust_per_second`` divides it by survival_time;
+  max_tilt_deg    the largest tilt from upright (``tilt``), what the loss-of-control limit reads;
+  max_attitude_deg  the largest |Euler angle| component (yaw included).
 """
 from __future__ import annotations
 
@@ -19,7 +30,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from sdexp.control.lqr import LqrFailure
+from sdexp.config import FlightConfig
 from sdexp.control.tasks import Task, wrap_angle
+from sdexp.sim.rotations import tilt_from_euler
 from sdexp.sim.sensors import State, decompose
 from sdexp.sim.simulator import Simulator
 
@@ -38,14 +51,57 @@ class Flight:
         return {k: np.asarray(getattr(self, k)) for k in ("t", "x", "u", "goal")}
 
 
-def fly(sim: Simulator, controller, task: Task, on_step=None) -> Flight:
+def tilt(e) -> np.ndarray:
+    """Tilt from upright (rad, in [0, pi]) of the attitude block e (..., n_e) of the decomposed
+    state: 2D |theta| (wrapped), 3D the angle between the body's up axis and world +Y
+    (``rotations.tilt_from_euler``; no single Euler component measures it)."""
+    e = np.asarray(e, dtype=float)
+    return np.abs(wrap_angle(e[..., 0])) if e.shape[-1] == 1 else tilt_from_euler(e)
+
+
+def arena(task: Task) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi): the axis-aligned box spanned by the task's start and its goal positions over the
+    task. The goal moves in a straight line (p_goal(t) = target + velocity t), so its positions at
+    0 and task.seconds span them all. A flight is lost past ``arena_margin`` from this box."""
+    pts = np.array([task.start, task.goal(0.0).p, task.goal(task.seconds).p])
+    return pts.min(axis=0), pts.max(axis=0)
+
+
+class LossOfControl:
+    """The loss-of-control check of one flight: ``check(state)`` is None while the state is
+    within the limits (config ``flight``), else the failure reason."""
+
+    def __init__(self, task: Task, limits=None):
+        limits = FlightConfig() if limits is None else limits
+        self.max_tilt = None if limits.max_tilt_deg is None else float(limits.max_tilt_deg)
+        self.margin = None if limits.arena_margin is None else float(limits.arena_margin)
+        self.lo, self.hi = arena(task)
+
+    def check(self, state: State) -> str | None:
+        if self.max_tilt is not None:
+            deg = float(np.rad2deg(tilt(state.e)))
+            if deg > self.max_tilt:
+                return f"loss_of_control: tilt {deg:.1f} deg > {self.max_tilt:g}"
+        if self.margin is not None:
+            out = np.maximum(0.0, np.maximum(self.lo - state.p, state.p - self.hi))
+            d = float(np.linalg.norm(out))
+            if d > self.margin:
+                where = ", ".join(f"{v:.1f}" for v in state.p)
+                return (f"loss_of_control: left the arena, {d:.2f} m > {self.margin:g} m from the box spanned "
+                        f"by start and goal, at p = ({where})")
+        return None
+
+
+def fly(sim: Simulator, controller, task: Task, on_step=None, limits=None) -> Flight:
+    """``limits``: the loss-of-control limits (a ``FlightConfig`` or the ``flight`` config node);
+    None = the schema's defaults."""
     # the controllers' matrices are tiny (28 x 28 at most): BLAS threads only add hand-offs and
     # stall when the simulator's threads hold the cores
     with threadpool_limits(1, user_api="blas"):
-        return _fly(sim, controller, task, on_step)
+        return _fly(sim, controller, task, on_step, LossOfControl(task, limits))
 
 
-def _fly(sim: Simulator, controller, task: Task, on_step=None) -> Flight:
+def _fly(sim: Simulator, controller, task: Task, on_step, lost: LossOfControl) -> Flight:
     sim.reset()
     # release the drone where its *measured* position (the mean of its IMUs) is task.start
     readings = sim.reset(position=task.start - sim.state(noisy=False).p)
@@ -72,12 +128,17 @@ def _fly(sim: Simulator, controller, task: Task, on_step=None) -> Flight:
         if not sim.alive:
             flight.failure, flight.failure_time = f"simulator: {sim.failure.reason}", sim.failure.time
             break
+        state = sim.state(noisy=False)
         flight.u.append(u)
         flight.t.append(sim.t)
-        flight.x.append(sim.state(noisy=False).x)
+        flight.x.append(state.x)
         flight.goal.append(task.goal(sim.t).x)
         if on_step is not None:
             on_step()
+        reason = lost.check(state)
+        if reason is not None:
+            flight.failure, flight.failure_time = reason, sim.t
+            break
     return flight
 
 
@@ -85,7 +146,8 @@ def metrics(flight: Flight, p_slice: slice, e_slice: slice, seconds: float) -> d
     a = flight.arrays()
     survival = flight.failure_time if flight.failure is not None else seconds
     p_err = np.linalg.norm(a["x"][:, p_slice] - a["goal"][:, p_slice], axis=1)
-    tilt = np.abs(wrap_angle(a["x"][:, e_slice])).max() if len(a["x"]) else np.nan
+    att = np.abs(wrap_angle(a["x"][:, e_slice])).max() if len(a["x"]) else np.nan
+    up = tilt(a["x"][:, e_slice]).max() if len(a["x"]) else np.nan
     usage = float(np.abs(a["u"]).sum()) if len(a["u"]) else 0.0
     return {
         "survival_time": float(survival),
@@ -95,5 +157,6 @@ def metrics(flight: Flight, p_slice: slice, e_slice: slice, seconds: float) -> d
         "mean_error_last_5s": float(p_err[a["t"] >= a["t"][-1] - 5.0].mean()),
         "thrust_usage": usage,
         "thrust_per_second": usage / max(survival, 1e-9),
-        "max_attitude_deg": float(np.rad2deg(tilt)),
+        "max_tilt_deg": float(np.rad2deg(up)),
+        "max_attitude_deg": float(np.rad2deg(att)),
     }

@@ -36,7 +36,8 @@ class Setup:
 
     def fly(self, sim: Simulator, controller, task: Task, label: str | None = None, watch=None
             ) -> tuple[Flight, dict]:
-        """Fly with a progress bar; ``watch(sim)`` is called after every step (e.g. contacts)."""
+        """Fly with a progress bar; ``watch(sim)`` is called after every step (e.g. contacts).
+        The loss-of-control limits are the config's ``flight`` group, the same for every controller."""
         bar = None
         if self.progress:
             from tqdm import tqdm
@@ -48,7 +49,7 @@ class Setup:
                 bar.update()
             if watch is not None:
                 watch(sim)
-        flight = fly(sim, controller, task, on_step=on_step)
+        flight = fly(sim, controller, task, on_step=on_step, limits=getattr(self.cfg, "flight", None))
         if bar is not None:
             bar.close()
         return flight, metrics(flight, self.dyn.slices["p"], self.dyn.slices["e"], task.seconds)

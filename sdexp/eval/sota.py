@@ -2,12 +2,15 @@
 (3, 3, 3) for 20 s under each controller -- ours (Algorithm 1), rigid LQR, geometry-updating
 LQR, neural controller -- with the same simulator, noise seed, task and thrust clip.
 
-Writes ``sota.csv`` (our metrics beside the paper's), ``trajectory_<controller>.csv``,
-``sota.png`` (the paper's figure: x, y, z over time per controller) and ours' median
-milliseconds per relinearisation (``bench_control`` measures the rest).
+Writes ``sota.csv`` (our metrics beside the paper's; ``failure`` is why a flight ended early --
+a blow-up, a controller failure or a loss of control, config ``flight`` -- and ``survival_time``
+when), ``trajectory_<controller>.csv``, ``sota.png`` (the paper's figure: x, y, z over time per
+controller, each titled with how its flight ended) and ours' median milliseconds per
+relinearisation (``bench_control`` measures the rest).
 """
 from __future__ import annotations
 
+import textwrap
 import time
 from pathlib import Path
 
@@ -25,6 +28,13 @@ PAPER = {
 }
 LABELS = {"ours": "ours (relinearizing LQR)", "rigid_lqr": "LQR (rest shape)",
           "geometry_lqr": "geometry-updating LQR", "neural": "neural controller"}
+
+
+def ending(m: dict, width: int = 48) -> str:
+    """How a flight ended, for a figure title: survived, or the failure's time and reason."""
+    if m["survived"]:
+        return f"survived {m['survival_time']:.2f} s"
+    return textwrap.fill(f"ended at {m['survival_time']:.2f} s: {m['failure']}", width)
 
 
 def run(cfg, out_dir: Path) -> dict:
@@ -46,8 +56,7 @@ def run(cfg, out_dir: Path) -> dict:
         ps, pe, pu = PAPER.get(name, (np.nan,) * 3)
         rows.append({"controller": name, **m, "paper_survival_time": ps, "paper_final_error": pe,
                      "paper_thrust_usage": pu, "wall_seconds": wall})
-        titles[name] = (f"{LABELS.get(name, name)}\nsurvived {m['survival_time']:.2f} s, "
-                        f"final error {m['final_error']:.2f} m")
+        titles[name] = f"{LABELS.get(name, name)}\n{ending(m)}\nfinal error {m['final_error']:.2f} m"
         out.update({f"{name}_{k}": v for k, v in m.items()})
         if name == "ours" and ctl.timings:
             out["ours_ms_per_relinearization"] = 1e3 * float(np.median(ctl.timings))

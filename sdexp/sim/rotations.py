@@ -38,6 +38,14 @@ def euler_from_matrix(R: np.ndarray) -> np.ndarray:
     return np.stack([ex, ey, ez], axis=-1)
 
 
+def tilt_from_euler(e: np.ndarray) -> np.ndarray:
+    """The angle (rad, in [0, pi]) between the body's up axis R(e)[:, 1] and world +Y: the
+    arccos of R(e)[1, 1] = cos e_x cos e_z (e_y, the yaw about +Y, does not tilt). One angle
+    from all three: e_x = e_z = 180 deg is level (a yaw of 180 deg), not upside down."""
+    e = np.asarray(e, dtype=float)
+    return np.arccos(np.clip(np.cos(e[..., 0]) * np.cos(e[..., 2]), -1.0, 1.0))
+
+
 def euler_rate_matrix(e: np.ndarray) -> np.ndarray:
     """E(e) with omega_world = E(e) @ e_dot: columns are the world axes the three angles
     turn about (x after Ry Rz, y, z after Ry)."""

@@ -67,7 +67,8 @@ def by_hand(flight, task, p, e, seconds):
     return dict(survival_time=survival, final_error=err[-1], thrust_usage=usage,
                 thrust_per_second=usage / survival if survival > 0 else None,
                 mean_error_last_5s=err[T >= T[-1] - 5.0].mean(),
-                max_attitude_deg=np.rad2deg(np.abs(wrap_angle(X[:, e])).max()))
+                max_attitude_deg=np.rad2deg(np.abs(wrap_angle(X[:, e])).max()),
+                max_tilt_deg=np.rad2deg(np.abs(wrap_angle(X[:, e])).max()))   # 2D: tilt = |theta|
 
 
 def test_release_record_and_metrics_of_a_full_flight(rod):
@@ -96,7 +97,7 @@ def test_release_record_and_metrics_of_a_full_flight(rod):
     assert m["survived"] and m["failure"] == ""
     assert m["survival_time"] == 0.3
     assert m["thrust_usage"] == pytest.approx(30 * 22.0, rel=1e-12) == want["thrust_usage"]
-    for k in ("final_error", "thrust_per_second", "mean_error_last_5s", "max_attitude_deg"):
+    for k in ("final_error", "thrust_per_second", "mean_error_last_5s", "max_attitude_deg", "max_tilt_deg"):
         assert m[k] == pytest.approx(want[k], rel=1e-12), k
     # the goal moved 0.15 m in x while the rod rose: the error is not the start's distance
     assert m["final_error"] != pytest.approx(np.linalg.norm(task.target - task.start), rel=1e-3)
