@@ -125,7 +125,7 @@ def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, ca
 
     t0 = time.perf_counter()
     folder = Path(out_dir) / sc["id"]
-    drone = build_drone(drone_cfg, cache_dir)
+    drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
     r = dcfg.record
     record_flights(drone, sim_cfg, noise_cfg, folder / "logs", int(r.flights), float(r.seconds), list(r.manoeuvres),
                    int(sc["seed"]), float(r.height), float(r.ground), float(r.amplitude), effects=sc["effects"])
@@ -200,7 +200,7 @@ def param_error(sc: dict, rep: dict) -> dict:
 def rescore_row(row: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, scen_dir: str, cache_dir: str, report=None) -> dict:
     """oracle_gap for a scenario already run (a row of scenarios.csv and its folder)."""
     from sdexp.sim.drone import build_drone
-    drone = build_drone(drone_cfg, cache_dir)
+    drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
     sc = {"effects": json.loads(row["true_effects"])}
     out = {**row, **oracle_gap(sc, Path(scen_dir) / row["id"], drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)}
     if report:
@@ -287,7 +287,7 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
-    drone = build_drone(drone_cfg, cache_dir)
+    drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
     names = list(params.get("effects") or LIBRARY)
     if drone.dim == 2 and "rotor_reaction_torque" in names:
         names.remove("rotor_reaction_torque")

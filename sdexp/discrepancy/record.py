@@ -226,7 +226,7 @@ def run(cfg, out_dir: Path) -> dict:
     from sdexp.sim.drone import build_drone
 
     r = cfg.discrepancy.record
-    drone = build_drone(cfg.drone, cfg.cache_dir)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     folder = Path(out_dir) / "logs"
     paths = record_flights(drone, cfg.sim, cfg.noise, folder, int(r.flights), float(r.seconds),
                            list(r.manoeuvres), int(cfg.seed), float(r.height), float(r.ground),

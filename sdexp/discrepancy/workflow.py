@@ -301,7 +301,7 @@ def run(cfg, out_dir: Path) -> dict:
     if not q.measured:
         raise UserError("discrepancy.measured is not set: give the folder of measured logs "
                         "(sdexp experiment=record writes one)")
-    drone = build_drone(cfg.drone, cfg.cache_dir)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     rep = run_workflow(drone, cfg.drone, cfg.sim, cfg.noise, q, q.measured, Path(out_dir), cfg.cache_dir,
                        int(cfg.seed))
     print(json.dumps({k: rep[k] for k in ("verdict", "effects", "ties", "unexplained", "gap")}, indent=2))

@@ -66,12 +66,12 @@ def run(cfg, out_dir: Path) -> dict:
     rows = []
     for name in tqdm(names, desc="bench_sim drones"):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
-        drone = build_drone(d, cfg.cache_dir)
+        drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
         rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed))})
     for edge in tqdm(list(p.get("scaling_edges", [])), desc="bench_sim scaling"):
         d = load_drone_cfg(p.get("scaling_drone", "flower"))
         d.mesh.edge_length = float(edge)
-        drone = build_drone(d, cfg.cache_dir)
+        drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
         row = time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed))
         # mean bend of the peripheral sensors, outer rotors pushing bend_load N harder than the rest
         row["bend_deg"] = float(held_bend(drone, cfg.sim, outer_rotors(drone), float(p.bend_load)).mean())

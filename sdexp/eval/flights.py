@@ -20,7 +20,7 @@ class Setup:
 
         self.cfg = cfg
         self.data, self.trained, self.dyn = prepare(cfg, progress)
-        self.drone = build_drone(cfg.drone, cfg.cache_dir)
+        self.drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
         self.progress = progress
 
     def simulator(self) -> Simulator:

@@ -21,7 +21,7 @@ def run(cfg, out_dir: Path) -> dict:
     table = []
     for ax, name in zip(axes.ravel(), tqdm(names, desc="gallery")):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
-        drone = build_drone(d, cfg.cache_dir)
+        drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
         x = drone.fem.rest
         plane = [0, 2] if drone.dim == 3 else [0, 1]
         if drone.dim == 3:  # top view of the upper surface

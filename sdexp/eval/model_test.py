@@ -163,7 +163,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     from sdexp.sim.sensors import decompose
     from sdexp.sim.simulator import Simulator
 
-    drone = build_drone(cfg.drone, cfg.cache_dir)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     dt = float(cfg.sim.control_dt)
     steps = int(round(seconds / dt))
     best = None
@@ -201,7 +201,7 @@ def input_jacobian_check(cfg, dyn: LearnedDynamics, steps: tuple[int, ...] = (1,
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
 
-    drone = build_drone(cfg.drone, cfg.cache_dir)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     quiet = OmegaConf.merge(cfg.noise, {"enabled": False})
     u0 = np.full(dyn.m, float(cfg.drone.mass) * float(cfg.sim.gravity) / dyn.m)
     x0 = Simulator(drone, cfg.sim, quiet).state(noisy=False).x

@@ -96,7 +96,7 @@ def _simulator(spec: dict):
         drone_cfg = OmegaConf.merge(OmegaConf.structured(DroneConfig), spec["drone"])
         sim_cfg = sim_config(spec)
         noise_cfg = OmegaConf.merge(OmegaConf.structured(NoiseConfig), spec["noise"])
-        drone = build_drone(drone_cfg, spec["cache_dir"])
+        drone = build_drone(drone_cfg, spec["cache_dir"], sim_cfg.element)
         sim = Simulator(drone, sim_cfg, noise_cfg, 0)
         _CACHED.update(tag=tag, drone=drone, sim=sim)
     return _CACHED["drone"], _CACHED["sim"]

@@ -8,7 +8,9 @@ import numpy as np
 
 from sdexp.cache import cached_arrays, key_of
 from sdexp.errors import UserError
+from sdexp.config import ELEMENTS
 from sdexp.sim.fem import FemModel, build_fem
+from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
 from sdexp.sim.sensors import ImuPatches, SensorLayout, build_imu_patches
 from sdexp.sim.shape import Shape
 
@@ -61,6 +63,8 @@ def make_shape(cfg) -> Shape:
     from sdexp.sim.shapes import SHAPES
     if cfg.shape not in SHAPES:
         raise UserError(f"drone.shape = {cfg.shape!r} is unknown: choose one of {sorted(SHAPES)}")
+    from sdexp.config import check_design
+    check_design(cfg)   # rotor and IMU counts against the paper's design
     try:
         shape = SHAPES[cfg.shape](list(cfg.size), cfg.thickness, int(cfg.num_rotors),
                                   int(cfg.num_sensors), dict(cfg.params))
@@ -180,18 +184,30 @@ def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatch
     return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), weights, np.asarray(anchors))
 
 
-def build_drone(cfg, cache_dir: str) -> Drone:
-    """cfg is the ``drone`` config node (validated)."""
+def build_drone(cfg, cache_dir: str, element: str) -> Drone:
+    """cfg is the ``drone`` config node (validated); ``element``: ``sim.element``."""
     shape = make_shape(cfg)
     points, elems = mesh_shape(shape, cfg.mesh, cache_dir)
-    return assemble_drone(cfg, shape, points, elems)
+    return assemble_drone(cfg, shape, points, elems, element)
 
 
-def assemble_drone(cfg, shape: Shape, points: np.ndarray, elems: np.ndarray) -> Drone:
-    """Bind rotors and IMUs of ``shape`` to the mesh (points, elems); cfg supplies the
-    material, mass, thrust limit and patch radii (a DroneConfig or anything with its fields)."""
-    fem = build_fem(points, elems, cfg.mass, cfg.youngs_modulus, cfg.poisson_ratio)
-    boundary = boundary_faces(elems)
+def assemble_drone(cfg, shape: Shape, points: np.ndarray, elems: np.ndarray, element: str) -> Drone:
+    """Bind rotors and IMUs of ``shape`` to the linear mesh (points, elems), with ``element``
+    (linear | quadratic) elements on it; cfg supplies the material, mass, thrust limit and
+    patch radii (a DroneConfig or anything with its fields)."""
+    corner_faces = boundary_faces(elems)
+    if element == "quadratic":
+        points, elems = quadratic_mesh(points, elems)
+        boundary = boundary_subfaces(corner_faces, elems)
+    elif element == "linear":
+        boundary = corner_faces
+    else:
+        raise UserError(f"sim.element = {element!r} is unknown: choose one of {list(ELEMENTS)}")
+    try:
+        fem = build_fem(points, elems, cfg.mass, cfg.youngs_modulus, cfg.poisson_ratio)
+    except ValueError as err:
+        raise UserError(f"drone {cfg.name}: its mesh (drone.mesh = edge_length {cfg.mesh.edge_length}) "
+                        f"gives no usable FEM model: {err}") from None
     rotors = build_rotors(points, boundary, shape.rotors, shape.rotor_normals, cfg.rotor_radius, cfg.name)
     imus, layout = build_imu_patches(points, boundary, shape, cfg.imu_radius, cfg.name)
     return Drone(cfg.name, fem, boundary, rotors, imus, layout, float(cfg.max_thrust),

@@ -1,4 +1,5 @@
-"""Co-rotated linear elasticity (Mueller & Gross 2004) on linear tets (3D) and triangles (2D).
+"""Co-rotated linear elasticity (Mueller & Gross 2004) on tets (3D) and triangles (2D), linear
+here, quadratic in sdexp.sim.quadratic (``FemModel.order`` tells which a model has).
 
 The element force is the linear-elastic force in the element's rotated frame: with
 F = Ds Dm^-1, R = polar(F), eps = sym(R^T F) - I and P = R (2 mu eps + lam tr(eps) I),
@@ -18,15 +19,17 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from sdexp.sim.quadratic import ROTATION_PER_POINT, p2_range_2d, p2_range_3d
+
 POLAR_ITERATIONS = 2
 
 
 @dataclass
 class FemModel:
     dim: int
-    rest: np.ndarray      # (nv, dim) rest positions
-    elems: np.ndarray     # (ne, dim+1) int32, positively oriented
-    Bm: np.ndarray        # (ne, dim, dim) inverse rest edge matrix Dm^-1
+    rest: np.ndarray      # (nv, dim) rest positions (quadratic: corners, then mid-edge nodes)
+    elems: np.ndarray     # (ne, dim+1) int32, positively oriented; quadratic (ne, 10 | 6)
+    Bm: np.ndarray        # (ne, dim, dim) inverse rest edge matrix Dm^-1 of the corners
     vol: np.ndarray       # (ne,) rest volume (2D: area x 1 m depth)
     mass: np.ndarray      # (nv,) lumped mass
     mu: float
@@ -35,6 +38,17 @@ class FemModel:
     @property
     def n_elems(self) -> int:
         return len(self.elems)
+
+    @property
+    def order(self) -> int:
+        """1 for linear elements, 2 for quadratic ones."""
+        return 1 if self.elems.shape[1] == self.dim + 1 else 2
+
+    @property
+    def n_rotations(self) -> int:
+        """Warm-start quaternions the 3D kernels keep: one per element, or one per quadrature
+        point of a quadratic tet."""
+        return self.n_elems * (4 if self.order == 2 else 1)
 
 
 def lame(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
@@ -51,18 +65,27 @@ def signed_volumes(points: np.ndarray, elems: np.ndarray) -> np.ndarray:
 
 def build_fem(rest: np.ndarray, elems: np.ndarray, total_mass: float,
               youngs_modulus: float, poisson_ratio: float) -> FemModel:
-    """Precompute rest quantities; mass is lumped evenly to each element's vertices."""
+    """Precompute rest quantities. Linear elements (ne, dim+1): mass lumped evenly to the
+    vertices. Quadratic ones (ne, 10 | 6, quadratic.quadratic_mesh): HRZ-lumped."""
+    from sdexp.sim.quadratic import lumped_mass, nodes_per_element
+
     rest = np.ascontiguousarray(rest, dtype=np.float64)
     elems = np.ascontiguousarray(elems, dtype=np.int32)
     d = rest.shape[1]
+    if elems.shape[1] not in (nodes_per_element(d, 1), nodes_per_element(d, 2)):
+        raise ValueError(f"{d}D elements need {nodes_per_element(d, 1)} or {nodes_per_element(d, 2)} "
+                         f"nodes, not {elems.shape[1]}")
     Dm = np.stack([rest[elems[:, k + 1]] - rest[elems[:, 0]] for k in range(d)], axis=-1)
     vol = np.linalg.det(Dm) / (6.0 if d == 3 else 2.0)
     if np.any(vol <= 0):
         raise ValueError(f"{int(np.sum(vol <= 0))} elements are inverted or degenerate at rest")
     Bm = np.ascontiguousarray(np.linalg.inv(Dm))
     density = total_mass / vol.sum()
-    mass = np.zeros(len(rest))
-    np.add.at(mass, elems.ravel(), np.repeat(density * vol / (d + 1), d + 1))
+    if elems.shape[1] == d + 1:
+        mass = np.zeros(len(rest))
+        np.add.at(mass, elems.ravel(), np.repeat(density * vol / (d + 1), d + 1))
+    else:
+        mass = lumped_mass(len(rest), elems, density * vol)
     if np.any(mass <= 0):
         raise ValueError("mesh has vertices that belong to no element")
     mu, lam = lame(youngs_modulus, poisson_ratio)
@@ -253,18 +276,43 @@ def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf):
 def elastic_forces(model: FemModel, x: np.ndarray, q: np.ndarray | None = None,
                    kernel=None) -> np.ndarray:
     """Total elastic force on every vertex (nv, dim), for tests and the stability estimate
-    (the simulator's loop fuses this with integration). ``kernel``: a C-signature 3D kernel,
-    by default the compiled one."""
+    (the simulator's loop fuses this with integration). ``q``: warm-start quaternions
+    (model.n_rotations, 4), updated. ``kernel``: a C-signature linear 3D kernel, by default the
+    compiled one; quadratic elements use the numba reference (kernels.c runs them in the step)."""
     from sdexp.sim.native import corotated_kernel_3d
 
     fbuf = np.zeros((1,) + x.shape)
     if model.dim == 3:
-        q = rest_quaternions(model.n_elems) if q is None else q
-        elastic_forces_3d(kernel or corotated_kernel_3d(), x, model.elems, model.Bm, model.vol,
-                          model.mu, model.lam, q, fbuf)
-    else:
-        elastic_forces_2d(x, model.elems, model.Bm, model.vol, model.mu, model.lam, fbuf)
+        q = rest_quaternions(model.n_rotations) if q is None else q
+    element_forces(kernel or corotated_kernel_3d(), x, model.elems, model.Bm, model.vol,
+                   model.mu, model.lam, q if model.dim == 3 else np.zeros((0, 4)), fbuf)
     return fbuf[0]
+
+
+@nb.njit(cache=True)
+def element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf):
+    """Elastic forces of any element kind into one buffer per thread (fbuf (nt, nv, dim));
+    the numba step (integrator.advance) and elastic_forces call this. Linear 3D runs ``kernel``
+    (C signature); quadratic elements their numba reference, one chunk per buffer.
+    Returns the number of inverted elements."""
+    nodes = elems.shape[1]
+    if nodes == 4:
+        return elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf)
+    if nodes == 3:
+        return elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf)
+    ne = elems.shape[0]
+    nt = fbuf.shape[0]
+    chunk = (ne + nt - 1) // nt
+    inverted = 0
+    for t in range(nt):
+        fbuf[t] = 0.0
+        e0, e1 = t * chunk, min(ne, (t + 1) * chunk)
+        if nodes == 10:
+            inverted += p2_range_3d(x, elems, Bm, vol, mu, lam, q, fbuf[t], e0, e1,
+                                    ROTATION_PER_POINT, POLAR_ITERATIONS)
+        else:
+            inverted += p2_range_2d(x, elems, Bm, vol, mu, lam, fbuf[t], e0, e1)
+    return inverted
 
 
 def rest_quaternions(n: int) -> np.ndarray:

@@ -10,7 +10,7 @@ import ctypes
 import numba as nb
 import numpy as np
 
-from sdexp.sim.fem import FemModel, elastic_forces_2d, elastic_forces_3d, rest_quaternions
+from sdexp.sim.fem import FemModel, element_forces, rest_quaternions
 from sdexp.sim.native import Step, blocked, corotated_kernel_3d, library
 
 
@@ -212,11 +212,7 @@ def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, mas
     vmax2 = 0.0
     dim = x.shape[1]
     for _ in range(n_sub):
-        if dim == 3:
-            inv = elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf)
-        else:
-            inv = elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf)
-        worst = max(worst, inv)
+        worst = max(worst, element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf))
         rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs)
         vmax2 = max(vmax2, integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gravity, ground,
                                      boxes_min, boxes_max, friction))
@@ -242,7 +238,7 @@ class Body:
         self.fem = fem
         self.x = fem.rest.copy()
         self.v = np.zeros_like(self.x)
-        self.q = rest_quaternions(fem.n_elems) if d == 3 else np.zeros((fem.n_elems, 1))
+        self.q = rest_quaternions(fem.n_rotations) if d == 3 else np.zeros((0, 4))
         self.fbuf = np.zeros((threads,) + self.x.shape)
         self.minv = 1.0 / fem.mass
         if pinned is not None:
@@ -266,22 +262,27 @@ class Body:
 
     def _blocked(self):
         """q and (el, Bm, vol) in the blocks of SIMD lanes the compiled 3D step reads in place
-        (kernels.c, forces_impl); el padded with vertex 0, q with the identity."""
+        (kernels.c, forces_impl / p2_forces_blocked); el padded with vertex 0, q with the
+        identity (a quadratic tet's row holds its quadrature points' quaternions side by side)."""
         f, b = self.fem, self._lib.block_size()
-        q = blocked(self.q, b, pad=[1.0, 0.0, 0.0, 0.0])
-        el = np.zeros((q.shape[0] * b, 4), np.int32)
+        per = f.n_rotations // f.n_elems
+        q = blocked(self.q.reshape(f.n_elems, 4 * per), b, pad=np.tile([1.0, 0.0, 0.0, 0.0], per))
+        el = np.zeros((q.shape[0] * b, f.elems.shape[1]), np.int32)
         el[:f.n_elems] = f.elems
         return q, (el, blocked(f.Bm.reshape(f.n_elems, 9), b), blocked(f.vol, b))
 
     def set_rotation(self, q) -> None:
         """Every element's warm-start rotation to the quaternion q (w, x, y, z)."""
-        self.q[:] = np.asarray(q)[None, :, None] if self.q.ndim == 3 else q
+        if self.q.ndim == 3:
+            self.q[:] = np.tile(np.asarray(q, float), self.q.shape[1] // 4)[None, :, None]
+        else:
+            self.q[:] = q
 
     def quaternions(self) -> np.ndarray:
-        """The elements' warm-start rotations, (ne, 4), whatever the layout."""
+        """The warm-start rotations, (fem.n_rotations, 4), whatever the layout."""
         if self.q.ndim == 2:
             return self.q
-        return np.moveaxis(self.q, -1, 1).reshape(-1, 4)[:self.fem.n_elems]
+        return np.moveaxis(self.q, -1, 1).reshape(-1, 4)[:self.fem.n_rotations]
 
     def _bind(self) -> Step:
         f, d = self.fem, self.fem.dim
@@ -296,6 +297,7 @@ class Body:
             if not (a.flags.c_contiguous and a.dtype == want.get(name, np.float64)):
                 raise TypeError(f"Body.{name}: needs a C-contiguous {np.dtype(want.get(name, np.float64))} array")
         return Step(dim=d, nv=len(self.x), ne=f.n_elems, nt=self.fbuf.shape[0], n_rotors=len(self.dirs),
+                    nodes=f.elems.shape[1],
                     n_boxes=len(self.boxes_min), mu=f.mu, lam=f.lam, ground=max(self.ground, -1e300),
                     friction=self.friction, **{k: a.ctypes.data for k, a in arrays.items()})
 

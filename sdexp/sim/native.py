@@ -29,7 +29,7 @@ SIGNATURE = ctypes.CFUNCTYPE(ctypes.c_int, _P, _P, _P, _P, _D, _D, _P, _P, _I, _
 
 class Step(ctypes.Structure):
     """kernels.c's Step: one body and one control step of it (pointers into its arrays)."""
-    _fields_ = ([(n, _I) for n in ("dim", "nv", "ne", "nt", "n_sub", "n_rotors", "n_boxes")]
+    _fields_ = ([(n, _I) for n in ("dim", "nv", "ne", "nt", "n_sub", "n_rotors", "n_boxes", "nodes")]
                 + [(n, _D) for n in ("dt", "mu", "lam", "damping", "deform_damping", "gravity",
                                      "ground", "friction")]
                 + [(n, _P) for n in ("x", "v", "q", "fbuf", "ext", "dirs", "fext", "minv", "mass",

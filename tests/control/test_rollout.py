@@ -16,7 +16,7 @@ DT = 0.01
 @pytest.fixture(scope="module")
 def rod(cache_dir):
     cfg = make_cfg("drone=rod", f"cache_dir={cache_dir}")
-    return cfg, build_drone(cfg.drone, cache_dir)
+    return cfg, build_drone(cfg.drone, cache_dir, cfg.sim.element)
 
 
 def simulator(rod, **sim):

@@ -21,4 +21,4 @@ def small_cfg(cache_dir):
 
 @pytest.fixture(scope="session")
 def leaf(small_cfg):
-    return build_drone(small_cfg.drone, small_cfg.cache_dir)
+    return build_drone(small_cfg.drone, small_cfg.cache_dir, small_cfg.sim.element)

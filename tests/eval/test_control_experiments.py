@@ -83,7 +83,7 @@ def test_the_fold_limit_is_inverse_in_the_modulus_while_the_bend_is_small(cache_
     folds = []
     for modulus in (48000.0, 96000.0):   # 16x and 32x the star's: small bends
         cfg = make_cfg("experiment=obstacle", f"cache_dir={cache_dir}", f"drone.youngs_modulus={modulus}")
-        drone = build_drone(cfg.drone, cfg.cache_dir)
+        drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
         folds.append(fold_limit(drone, cfg.sim, folding_wings(drone.layout.r_hat), seconds=2.0))
     assert 1.0 < folds[0] < 10.0                      # a few degrees: the linear regime
     assert folds[0] / folds[1] == pytest.approx(2.0, rel=0.03)

@@ -237,7 +237,7 @@ def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]")
     assert cfg.data.around_hover
     u = load_dataset(cfg, CHUNK).arrays["u"]
-    hover = rest_hover_thrust(build_drone(cfg.drone, cfg.cache_dir), float(cfg.sim.gravity))
+    hover = rest_hover_thrust(build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), float(cfg.sim.gravity))
     tmax = float(cfg.drone.max_thrust)
     assert np.all(np.abs(u - hover) <= 0.05 * tmax + 1e-5)
     assert np.abs(u - hover).max() > 0.03 * tmax            # the draws span the range
@@ -258,7 +258,7 @@ def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
                    "data.hover=shape")
     u = load_dataset(cfg, CHUNK).arrays["u"]
-    shape = shape_hover_thrust(build_drone(cfg.drone, cfg.cache_dir), cfg.sim)
+    shape = shape_hover_thrust(build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), cfg.sim)
     assert np.all(np.abs(u - shape) <= 0.01 * float(cfg.drone.max_thrust) + 1e-5)
     rigid = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]")
     assert dataset_key(dataset_spec(rigid, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
@@ -277,7 +277,7 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
                    "data.deform_range=0.3", "data.deform_hold_seconds=0.5")
-    drone = build_drone(cfg.drone, cfg.cache_dir)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     fem = drone.fem
     _, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
     W = wrench_matrix(pos, dirs)[[1, 2]]   # 2D: lift and the (tilting) torque

@@ -68,7 +68,7 @@ def star(cache_dir):
     """The committed star (conf/drone/star.yaml: thin arms, drone.mesh.mirror = [x, z])."""
     cfg = make_cfg("drone=star", f"cache_dir={cache_dir}")
     assert list(cfg.drone.mesh.mirror) == ["x", "z"]
-    return cfg, build_drone(cfg.drone, cache_dir)
+    return cfg, build_drone(cfg.drone, cache_dir, cfg.sim.element)
 
 
 def test_a_mirrored_mesh_is_the_design_reflected_onto_itself(star):
@@ -85,7 +85,7 @@ def test_a_ring_and_a_bowl_mirror_too(cache_dir, drone, planes):
     """The hole of the donut (chords only through the ring) and the orange peel's curved bowl,
     symmetric about x = 0 only (five petals)."""
     cfg = make_cfg(f"drone={drone}", f"drone.mesh.mirror={planes}", f"cache_dir={cache_dir}")
-    rest = build_drone(cfg.drone, cache_dir).fem.rest
+    rest = build_drone(cfg.drone, cache_dir, cfg.sim.element).fem.rest
     for name in planes.strip("[]").split(","):
         assert mirror_gap(rest, {"x": 0, "z": 2}[name]) < 1e-12
 
@@ -110,4 +110,4 @@ def test_a_mirrored_star_folds_both_wings_alike_and_does_not_yaw(star):
 def test_mirroring_a_design_that_is_not_symmetric_names_the_key(cache_dir):
     cfg = make_cfg("drone=orange_peel", "drone.mesh.mirror=[z]", f"cache_dir={cache_dir}")
     with pytest.raises(UserError, match=r"drone\.mesh\.mirror.*rotors"):
-        build_drone(cfg.drone, cache_dir)
+        build_drone(cfg.drone, cache_dir, cfg.sim.element)

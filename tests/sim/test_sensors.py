@@ -24,7 +24,7 @@ def plate_drone():
                   frame_imus=np.array([[0.0, T / 2, 0.0]]), frame_normals=up[None])
     cfg = DroneConfig(name="plate", shape="test", size=[3.0, T, 1.0], youngs_modulus=1e4,
                       num_rotors=3, num_sensors=2, rotor_radius=0.15, imu_radius=0.15)
-    return assemble_drone(cfg, shape, pts, tets)
+    return assemble_drone(cfg, shape, pts, tets, "linear")
 
 
 def beam_drone_2d():
@@ -36,7 +36,7 @@ def beam_drone_2d():
                   frame_imus=np.array([[0.0, T / 2]]), frame_normals=up[None])
     cfg = DroneConfig(name="beam", dim=2, shape="test", size=[3.0, T], youngs_modulus=1e4,
                       num_rotors=2, num_sensors=2, rotor_radius=0.15, imu_radius=0.15)
-    return assemble_drone(cfg, shape, pts, tris)
+    return assemble_drone(cfg, shape, pts, tris, "linear")
 
 
 @pytest.fixture(scope="module")

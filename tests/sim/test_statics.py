@@ -15,7 +15,7 @@ def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):
     symmetric like the rod, and holds the bends several times smaller."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=["drone=rod", f"cache_dir={cache_dir}"])
-    drone = build_drone(cfg.drone, cfg.cache_dir)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     rigid = rest_hover_thrust(drone, float(cfg.sim.gravity))
     shape = shape_hover_thrust(drone, cfg.sim)
     fem = drone.fem
