@@ -1,38 +1,142 @@
-"""The only @hydra.main: resolve the output directory and hand over to a runner."""
+"""The only @hydra.main: resolve the output directory and hand over to a runner.
+
+Every user error, whichever layer finds it (Hydra composing the config, sdexp's checks, an
+output folder that cannot be written), prints one line ``sdexp: error: ...`` and exits with
+:data:`sdexp.errors.EXIT_USER_ERROR`; only a bug prints a traceback (exit 1).
+"""
 from __future__ import annotations
 
+import os
+import re
 import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from sdexp.config import register
-from sdexp.errors import UserError
+from sdexp.config import register, unknown_key_error
+from sdexp.errors import EXIT_USER_ERROR, UserError, one_line
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 register()
 
+_started = False   # the task function was entered: errors after this are the run's, not Hydra's
+
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def _main(cfg: DictConfig) -> None:
+    global _started
     from sdexp.eval.experiments import run_experiment
 
+    _started = True
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        metrics = run_experiment(cfg, out_dir)
+        metrics = run_experiment(cfg, out_dir, overrides=OmegaConf.to_container(HydraConfig.get().overrides.task))
     except UserError as err:
-        print(f"sdexp: error: {err}", file=sys.stderr)
-        sys.exit(2)
+        _discard_if_empty(out_dir)
+        fail(str(err))
     print(f"sdexp: {cfg.experiment.name} done -> {out_dir}")
     for k, v in metrics.items():
         if not isinstance(v, (dict, list)):
             print(f"  {k}: {v}")
 
 
+def _discard_if_empty(out_dir: Path) -> None:
+    """Hydra creates the run folder (and an empty job log) before the run: a run that stopped on
+    bad input leaves nothing behind."""
+    try:
+        for log in out_dir.glob("*.log"):
+            if log.stat().st_size == 0:
+                log.unlink()
+        cwd = Path.cwd().resolve()
+        for folder in [out_dir.resolve(), *out_dir.resolve().parents]:
+            if folder == cwd or cwd not in folder.parents:
+                break
+            folder.rmdir()   # only succeeds on an empty folder: outputs/<experiment>/<drone>/
+    except OSError:
+        pass
+
+
+def fail(message: str) -> None:
+    print(f"sdexp: error: {message}", file=sys.stderr)
+    sys.exit(EXIT_USER_ERROR)
+
+
+def _failing_override(args: list[str]) -> str | None:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for arg in args:
+        if arg.startswith("-"):
+            continue
+        try:
+            parser.parse_override(arg)
+        except Exception:   # noqa: BLE001 - whichever the grammar raises
+            return arg
+    return None
+
+
+def describe(err: BaseException, args: list[str]) -> str:
+    """Hydra's and OmegaConf's composition errors as one line naming the key and what is allowed."""
+    if isinstance(err, MissingConfigException) and err.missing_cfg_file and err.options:
+        group, _, name = err.missing_cfg_file.rpartition("/")
+        return f"{group}={name} is unknown: choose one of {', '.join(err.options)}"
+    if isinstance(err, OverrideParseException):
+        bad = _failing_override(args)
+        return f"cannot parse the override {bad!r}: {one_line(err)}" if bad else one_line(err)
+    match = re.match(r"Could not override '([^']+)'", str(err))
+    if match:
+        key = match.group(1)
+        schema = unknown_key_error(key)
+        if schema is not None:
+            return str(schema)
+        if key.startswith("experiment.params."):
+            return _unknown_param(key, args)
+        return f"{key} is not a config key"
+    match = re.match(r"Error merging override (\S+)", str(err))
+    if match and err.__cause__ is not None:
+        return f"{match.group(1)}: {one_line(err.__cause__)}"
+    return one_line(err)
+
+
+def _unknown_param(key: str, args: list[str]) -> str:
+    from sdexp.eval.experiments import param_defaults
+    name = next((a.split("=", 1)[1] for a in args if a.startswith("experiment=")), None)
+    if name is None:
+        defaults = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "config.yaml").defaults)
+        name = next((d["experiment"] for d in defaults if isinstance(d, dict) and "experiment" in d), "?")
+    allowed = ", ".join(sorted(param_defaults(name))) or "none"
+    return f"{key} is not a parameter of {name}: allowed {allowed}"
+
+
 def main() -> None:
-    _main()
+    """The ``sdexp`` command."""
+    global _started
+    args = sys.argv[1:]
+    previous = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing and exiting 1
+    _started = False
+    try:
+        _main()
+    except UserError as err:
+        fail(str(err))
+    except (HydraException, OmegaConfBaseException) as err:
+        if _started and not isinstance(err, HydraException):
+            raise   # an OmegaConf error inside a run is a bug, not a config mistake
+        fail(describe(err, args))
+    except OSError as err:
+        if _started:
+            raise
+        fail(f"cannot create the run's output folder: {err} (choose a writable one with "
+             f"hydra.run.dir=<folder>, or hydra.sweep.dir=<folder> with -m)")
+    finally:
+        if previous is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = previous
 
 
 if __name__ == "__main__":

@@ -6,13 +6,19 @@ Physical ranges are checked by :func:`validate`, which names the key and the all
 """
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import math
+import os
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from sdexp.errors import UserError
+from sdexp.errors import UserError, one_line
 
 
 ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.fem)
@@ -221,15 +227,151 @@ class Config:
 
 def register() -> None:
     ConfigStore.instance().store(name="base_config", node=Config)
+    # ${sdexp.pid:} in conf/config.yaml's run and sweep folders: two runs started in the same
+    # second get different folders (sdexp.eval.experiments.claim guards any folder reused)
+    if not OmegaConf.has_resolver("sdexp.pid"):
+        OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
+
+
+def _nonfinite(value: Any) -> bool:
+    """True when ``value`` (a number or a sequence of them) holds a nan or an infinity."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return False
+    if isinstance(value, (int, float)):
+        return not math.isfinite(value)
+    if isinstance(value, (list, tuple, ListConfig)):
+        return any(_nonfinite(v) for v in value)
+    return False
 
 
 def _check(ok: bool, key: str, value: Any, allowed: str) -> None:
-    if not ok:
+    """``inf`` passes ``> 0`` and ``nan`` fails every comparison: a non-finite number is always
+    out of range here, whatever ``ok`` says."""
+    if not ok or _nonfinite(value):
         raise UserError(f"{key} = {value!r} is not physical: allowed {allowed}")
+
+
+# ------------------------------------------------------------------ the shape of the config
+
+# Upper bound on the elements a drone's mesh may have, estimated before meshing from its bounding
+# box: fTetWild and Triangle take minutes (or fail) beyond it, and no experiment needs it.
+MAX_ELEMENTS = 300_000
+MIN_ELEMENTS_ALONG = 4   # elements along the drone's longest side: fewer meshes another body
+
+
+def _fields(cls) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _schema_error(key: str, names: list[str], where: str) -> UserError:
+    close = difflib.get_close_matches(key.rsplit(".", 1)[-1], names, n=1)
+    prefix = key.rsplit(".", 1)[0] + "." if "." in key else ""
+    hint = f" (did you mean {prefix}{close[0]}?)" if close else ""
+    return UserError(f"{key} is not a config key{hint}: the keys of {where} are {', '.join(sorted(names))}")
+
+
+def _walk_schema(node: DictConfig, cls, prefix: str) -> None:
+    hints = _fields(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in node.keys():
+        if key not in names:
+            raise _schema_error(f"{prefix}{key}", names, prefix[:-1] or "the config")
+    for name in names:
+        if OmegaConf.is_missing(node, name):
+            continue
+        value = node._get_node(name)
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint) and isinstance(value, DictConfig) and not value._is_none():
+            _walk_schema(value, hint, f"{prefix}{name}.")
+        elif typing.get_origin(hint) in (list, List) and isinstance(value, ListConfig) and not value._is_none():
+            (item,) = typing.get_args(hint) or (Any,)
+            if dataclasses.is_dataclass(item):
+                for i, v in enumerate(value):
+                    if isinstance(v, DictConfig):
+                        _walk_schema(v, item, f"{prefix}{name}[{i}].")
+
+
+def unknown_key_error(key: str) -> UserError | None:
+    """The error for an override of ``key`` that the schema has no place for (None when the key's
+    parent is not a schema node, e.g. a free-form params mapping)."""
+    cls, parts = Config, key.split(".")
+    for i, part in enumerate(parts[:-1]):
+        hint = _fields(cls).get(part)
+        if not dataclasses.is_dataclass(hint):
+            return None if hint is not None else _schema_error(
+                ".".join(parts[:i + 1]), [f.name for f in dataclasses.fields(cls)],
+                ".".join(parts[:i]) or "the config")
+        cls = hint
+    return _schema_error(key, [f.name for f in dataclasses.fields(cls)], ".".join(parts[:-1]) or "the config")
+
+
+def check_keys(cfg: DictConfig) -> None:
+    """Every key must be in the schema: Hydra's ``+key=value`` appends past a struct config (the
+    form Hydra itself suggests after a misspelled override), so a typo given that way is caught
+    here, with the closest valid key."""
+    _walk_schema(cfg, Config, "")
+
+
+def check_complete(cfg: DictConfig) -> None:
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        raise UserError(f"{missing[0]} has no value (???): set it, e.g. {missing[0]}=<value>"
+                        + (f" (also unset: {', '.join(missing[1:])})" if len(missing) > 1 else ""))
+
+
+def check_finite(node: Any, prefix: str = "") -> None:
+    """Every number anywhere in the config (effects' and shapes' params included) is finite."""
+    if isinstance(node, DictConfig):
+        items = [(f"{prefix}{k}", node._get_node(k)) for k in node.keys()]
+    elif isinstance(node, ListConfig):
+        items = [(f"{prefix[:-1]}[{i}]", node._get_node(i)) for i in range(len(node))]
+    else:
+        return
+    for key, child in items:
+        if isinstance(child, (DictConfig, ListConfig)):
+            check_finite(child, f"{key}.")
+            continue
+        value = child._value() if hasattr(child, "_value") else child
+        if isinstance(value, str) and value.strip().lower().lstrip("+-") in ("inf", "nan", "infinity"):
+            value = float(value)
+        if _nonfinite(value):
+            raise UserError(f"{key} = {value!r} is not a finite number")
+
+
+# The paper's designs (supplement B's tables): rotors and peripheral IMUs each shape carries. The
+# generators can place other counts (spread evenly, or by the sensor-tree rule), but a config runs
+# the design: its rotor count exactly, and at most its IMUs (fewer measure fewer bends).
+DESIGNS = {  # shape: (num_rotors, num_sensors)
+    "donut": (4, 4), "star": (5, 4), "flower": (9, 8), "leaf": (4, 4), "octopus": (9, 8),
+    "orange_peel": (5, 5), "engine": (6, 6), "bunny": (3, 3), "diamond": (4, 8), "elephant": (2, 3),
+    "rainbow": (2, 4), "rod": (5, 8),
+}
+
+
+def check_design(cfg) -> None:
+    """drone.num_rotors and drone.num_sensors against the shape's design (DESIGNS)."""
+    if cfg.shape not in DESIGNS:
+        return
+    rotors, sensors = DESIGNS[cfg.shape]
+    if int(cfg.num_rotors) != rotors:
+        raise UserError(f"drone.num_rotors = {cfg.num_rotors} does not fit the {cfg.shape} design: "
+                        f"allowed {rotors} (its rotor sites, supplement B)")
+    if not 0 <= int(cfg.num_sensors) <= sensors:
+        raise UserError(f"drone.num_sensors = {cfg.num_sensors} does not fit the {cfg.shape} design: "
+                        f"allowed 0 to {sensors} peripheral IMUs (supplement B)")
 
 
 def validate(cfg: DictConfig | Config) -> None:
     """Raise UserError naming the first key whose value is outside its physical range."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.structured(cfg)
+    check_keys(cfg)
+    try:
+        OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+        check_complete(cfg)
+    except OmegaConfBaseException as err:   # an interpolation that does not resolve
+        key = getattr(err, "full_key", None)
+        raise UserError(f"{key}: {one_line(err)}" if key else one_line(err)) from None
     d, s, n = cfg.drone, cfg.sim, cfg.noise
     _check(d.dim in (2, 3), "drone.dim", d.dim, "2 or 3")
     _check(len(d.size) == d.dim, "drone.size", list(d.size), f"{d.dim} positive lengths")
@@ -242,8 +384,20 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
     _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
     _check(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
+    check_design(d)
     _check(d.thickness is None or d.thickness > 0, "drone.thickness", d.thickness, "> 0 m")
-    _check(d.mesh.edge_length > 0, "drone.mesh.edge_length", d.mesh.edge_length, "> 0 m")
+    _check(d.rotor_radius > 0, "drone.rotor_radius", d.rotor_radius, "> 0 m")
+    _check(d.imu_radius > 0, "drone.imu_radius", d.imu_radius, "> 0 m")
+    longest = max(float(x) for x in d.size)
+    box = math.prod(float(x) for x in d.size)
+    # elements in the bounding box at this edge length: regular tets (edge^3 / 6 sqrt 2) or triangles
+    unit = 1 / (6 * math.sqrt(2)) if d.dim == 3 else math.sqrt(3) / 4
+    finest = (box / (unit * MAX_ELEMENTS)) ** (1 / d.dim)
+    coarsest = longest / MIN_ELEMENTS_ALONG
+    _check(finest <= d.mesh.edge_length <= coarsest, "drone.mesh.edge_length", d.mesh.edge_length,
+           f"in [{finest:.3g}, {coarsest:.3g}] m for this {d.name} (at least {MIN_ELEMENTS_ALONG} elements "
+           f"along its {longest:g} m, at most about {MAX_ELEMENTS:,} elements)")
+    _check(d.mesh.stop_energy > 0, "drone.mesh.stop_energy", d.mesh.stop_energy, "> 0")
     _check(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
                                  and set(d.mesh.mirror) <= {"x", "z"}),
            "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
@@ -254,6 +408,11 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
     _check(s.element in ELEMENTS, "sim.element", s.element, " or ".join(ELEMENTS))
     _check(s.friction >= 0, "sim.friction", s.friction, ">= 0")
+    _check(s.gravity >= 0, "sim.gravity", s.gravity, ">= 0 m/s^2 (it points along -y)")
+    _check(s.max_speed > 0, "sim.max_speed", s.max_speed, "> 0 m/s")
+    _check(s.max_stretch > 1, "sim.max_stretch", s.max_stretch, "> 1 (x the rest extent)")
+    if not isinstance(cfg.seed, bool) and isinstance(cfg.seed, int) and not 0 <= cfg.seed < 2 ** 32:
+        raise UserError(f"seed = {cfg.seed} is out of range: allowed 0 to {2 ** 32 - 1}")
     for i, b in enumerate(s.obstacles):
         _check(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),
                f"sim.obstacles[{i}]", OmegaConf.to_container(b) if isinstance(b, DictConfig) else b,
@@ -285,6 +444,7 @@ def validate(cfg: DictConfig | Config) -> None:
         _check(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")
     _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
     _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
+    _check(c.kd >= 0, "control.kd", c.kd, ">= 0")
     _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
     _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
     f = cfg.flight
@@ -311,3 +471,4 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(r.flights >= 1 and r.seconds > 0, "discrepancy.record.flights/seconds", (r.flights, r.seconds),
            "flights >= 1, seconds > 0")
     _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
+    check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...

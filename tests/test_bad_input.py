@@ -1,0 +1,137 @@
+"""Bad input never crashes and never passes silently (issue 16): every case below is a UserError
+(or, on the command line, exit code 2 and one line) naming the key, file or column and what is
+allowed, and nothing is written. The validation functions are called directly; a handful of
+real ``sdexp`` processes check the exit code and the one-line message."""
+import os
+import subprocess
+import sys
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from sdexp.cli import CONF_DIR
+from sdexp.config import validate
+from sdexp.errors import EXIT_USER_ERROR, UserError
+from sdexp.eval.experiments import RUNNERS, check_params, param_defaults
+
+
+def make_cfg(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def rejected(*overrides) -> str:
+    cfg = make_cfg(*overrides)
+    with pytest.raises(UserError) as info:
+        validate(cfg)
+        check_params(cfg)
+    return str(info.value)
+
+
+# ------------------------------------------------------------------ config: keys and values
+
+@pytest.mark.parametrize("override, key, allowed", [
+    # typos appended past the schema with Hydra's "+"
+    ("+drone.youngs_modulos=5000", "drone.youngs_modulos", "did you mean drone.youngs_modulus"),
+    ("+foo=1", "foo", "the keys of the config are"),
+    ("+drone.mesh.edge_lenght=0.2", "drone.mesh.edge_lenght", "did you mean drone.mesh.edge_length"),
+    ("+sim.gravty=9.81", "sim.gravty", "did you mean sim.gravity"),
+    ("+control.neural.hiden=3", "control.neural.hiden", "did you mean control.neural.hidden"),
+    # values outside the physics: inf passes "> 0", nan fails every comparison
+    ("drone.youngs_modulus=inf", "drone.youngs_modulus", "> 0 Pa"),
+    ("drone.mass=inf", "drone.mass", "> 0 kg"),
+    ("drone.mass=nan", "drone.mass", "> 0 kg"),
+    ("drone.mass=-1", "drone.mass", "> 0 kg"),
+    ("drone.max_thrust=inf", "drone.max_thrust", "> 0 N"),
+    ("drone.poisson_ratio=nan", "drone.poisson_ratio", "in (0, 0.5)"),
+    ("drone.damping=-inf", "drone.damping", ">= 0"),
+    ("drone.rotor_radius=0", "drone.rotor_radius", "> 0 m"),
+    ("drone.imu_radius=-0.1", "drone.imu_radius", "> 0 m"),
+    ("drone.size=[3.6,inf,3.6]", "drone.size", "positive lengths"),
+    ("sim.gravity=nan", "sim.gravity", ">= 0"),
+    ("sim.gravity=-9.81", "sim.gravity", ">= 0"),
+    ("sim.max_speed=-1", "sim.max_speed", "> 0 m/s"),
+    ("sim.max_stretch=0.5", "sim.max_stretch", "> 1"),
+    ("sim.control_dt=inf", "sim.control_dt", "> 0 s"),
+    ("sim.friction=-0.5", "sim.friction", ">= 0"),
+    ("sim.ground=inf", "sim.ground", "finite"),
+    ("control.kd=-1", "control.kd", ">= 0"),
+    ("control.q_e=inf", "control.q_e", "> 0"),
+    ("control.kp=nan", "control.kp", "in [0, 1]"),
+    ("noise.delay=-0.01", "noise.delay", ">= 0"),
+    ("model.lr=inf", "model.lr", "lr > 0"),
+    ("data.region=nan", "data.region", "> 0 m"),
+    ("seed=-1", "seed", "0 to 4294967295"),
+    ("seed=4294967296", "seed", "0 to 4294967295"),
+    ("drone.mesh.edge_length=5", "drone.mesh.edge_length", "in [0.0435, 0.9] m"),
+    ("drone.mesh.edge_length=0.001", "drone.mesh.edge_length", "at most about 300,000 elements"),
+    ("drone=rod drone.mesh.edge_length=3", "drone.mesh.edge_length", "at least 4 elements"),
+    ("drone.mesh.edge_length=inf", "drone.mesh.edge_length", "m for this flower"),
+    ("drone.params.petal_width=inf", "drone.params.petal_width", "finite"),
+    ("sim.obstacles=[{min:[1,2,3]}]", "sim.obstacles[0].max", "set it"),
+    ("drone.mass=${nope}", "drone.mass", "nope"),
+    # rotor and sensor counts against the paper's designs (supplement B)
+    ("drone=rod drone.num_rotors=500", "drone.num_rotors", "allowed 5"),
+    ("drone=elephant drone.num_rotors=7", "drone.num_rotors", "allowed 2"),
+    ("drone=bunny drone.num_sensors=20", "drone.num_sensors", "allowed 0 to 3"),
+    ("drone=rod drone.num_sensors=300", "drone.num_sensors", "allowed 0 to 8"),
+    ("drone=flower drone.num_rotors=10", "drone.num_rotors", "allowed 9"),
+    ("drone=donut drone.num_sensors=5", "drone.num_sensors", "allowed 0 to 4"),
+    # experiment.params: a checked set of keys, types and ranges
+    ("+experiment.params.secnds=3", "experiment.params.secnds", "did you mean experiment.params.seconds"),
+    ("+experiment.params.drones=[rod]", "experiment.params.drones", "allowed controllers, seconds, start, target"),
+    ("experiment=record +experiment.params.flights=3", "experiment.params.flights", "allowed none"),
+    ("experiment.params.seconds=-1", "experiment.params.seconds", "> 0"),
+    ("experiment.params.seconds=abc", "experiment.params.seconds", "a number"),
+    ("~experiment.params.seconds", "experiment.params.seconds", "is missing"),
+    ("experiment=bench_control experiment.params.samples=2.5", "experiment.params.samples", "an integer"),
+    ("experiment=nsweep experiment.params.n_values=[0,1]", "experiment.params.n_values", "> 0 each"),
+    ("experiment=bench_sim experiment.params.drones=[rod,nope]", "experiment.params.drones", "rod, star"),
+    ("experiment=bench_sim experiment.params.scaling_drone=rodd", "experiment.params.scaling_drone", "flower"),
+    ("experiment=validate_fem +experiment.params.beam.lenght=2", "experiment.params.beam.lenght", "length"),
+    ("experiment=hover_deform experiment.params.ramp_seconds=inf", "experiment.params.ramp_seconds", "finite"),
+])
+def test_bad_config_values_name_the_key_and_the_allowed_values(override, key, allowed):
+    message = rejected(*override.split())
+    assert key in message and allowed in message, message
+
+
+@pytest.mark.parametrize("experiment", sorted(RUNNERS))
+def test_every_experiment_declares_its_params(experiment):
+    cfg = make_cfg(f"experiment={experiment}")
+    validate(cfg)
+    check_params(cfg)   # its own YAML passes its own check
+    assert set(cfg.experiment.params) == set(param_defaults(experiment))
+
+
+# ------------------------------------------------------------------ the command line
+
+def sdexp(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "sdexp.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, env={**os.environ, "HYDRA_FULL_ERROR": ""})
+
+
+def assert_one_line_error(res, *words):
+    assert res.returncode == EXIT_USER_ERROR, res.stderr
+    err = res.stderr.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1 and err.startswith("sdexp: error: "), err
+    for w in words:
+        assert w in err, err
+
+
+@pytest.mark.parametrize("args, words", [
+    (["drone.youngs_modulos=5000"], ["drone.youngs_modulos", "did you mean drone.youngs_modulus"]),
+    (["+drone.youngs_modulos=5000"], ["drone.youngs_modulos", "did you mean drone.youngs_modulus"]),
+    (["drone=nope"], ["drone=nope", "flower", "rod"]),
+    (["drone.mass=["], ["drone.mass=["]),
+    (["drone.mass=abc"], ["drone.mass", "Float"]),
+    (["experiment=bench_sim", "experiment.params.drone=[rod]"], ["experiment.params.drone", "drones"]),
+])
+def test_hydra_config_errors_are_one_line_with_the_user_error_code(tmp_path, args, words):
+    assert_one_line_error(sdexp(*args, cwd=tmp_path), *words)
+    assert list(tmp_path.iterdir()) == []   # nothing written
+
+
+def test_a_bad_value_exits_2_in_one_line_and_leaves_no_run_folder(tmp_path):
+    assert_one_line_error(sdexp("drone.mass=inf", cwd=tmp_path), "drone.mass", "> 0 kg")
+    assert list(tmp_path.iterdir()) == []
