@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -36,16 +37,31 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 
 
 def cached_arrays(cache_dir: str | Path, key: str, make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Load the arrays stored under ``key``, or make, store and return them."""
+    """Load the arrays stored under ``key``, or make, store and return them. An entry that cannot
+    be read back whole is made again."""
     path = Path(cache_dir).expanduser() / f"{key}.npz"
     if path.exists():
-        with np.load(path) as data:
-            return {k: data[k] for k in data.files}
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+            if arrays:
+                return arrays
+            reason = "it holds no arrays"
+        except Exception as err:   # noqa: BLE001 - truncated, overwritten, not a zip: any damage
+            reason = f"{type(err).__name__}: {err}"
+        # a damaged entry (a disk filled mid-copy, a file edited by hand): made again, not a traceback
+        print(f"sdexp: cache entry {path} is damaged ({reason}); rebuilding it", file=sys.stderr)
+        path.unlink(missing_ok=True)
     arrays = make()
 
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
 
-    atomic_write(path, write)
+    try:
+        atomic_write(path, write)
+    except OSError as err:
+        from sdexp.errors import UserError
+        raise UserError(f"cache_dir {Path(cache_dir).expanduser()} cannot be written ({err.strerror or err}): "
+                        f"choose a writable one with cache_dir=<folder> or SDEXP_CACHE") from None
     return arrays

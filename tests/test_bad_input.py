@@ -2,6 +2,7 @@
 (or, on the command line, exit code 2 and one line) naming the key, file or column and what is
 allowed, and nothing is written. The validation functions are called directly; a handful of
 real ``sdexp`` processes check the exit code and the one-line message."""
+import json
 import os
 import subprocess
 import sys
@@ -135,3 +136,144 @@ def test_hydra_config_errors_are_one_line_with_the_user_error_code(tmp_path, arg
 def test_a_bad_value_exits_2_in_one_line_and_leaves_no_run_folder(tmp_path):
     assert_one_line_error(sdexp("drone.mass=inf", cwd=tmp_path), "drone.mass", "> 0 kg")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unwritable_run_folder_is_one_line_and_exit_2(tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    res = sdexp("drone=rod", f"hydra.run.dir={tmp_path}/file/run", cwd=tmp_path)
+    assert_one_line_error(res, "output folder", "hydra.run.dir")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+# ------------------------------------------------------------------ run folders
+
+def test_runs_started_in_the_same_second_get_different_folders(tmp_path):
+    cmd = [sys.executable, "-m", "sdexp.cli", "--cfg", "all", "--resolve", "-p", "hydra.run.dir"]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    dirs = [p.communicate()[0].strip() for p in procs]
+    assert dirs[0].startswith("outputs/sota/flower/") and dirs[0] != dirs[1]
+    assert [d.rsplit("_", 1)[1] for d in dirs] == [str(p.pid) for p in procs]
+
+
+def _fake_finished_run(folder, cfg, metrics):
+    from omegaconf import OmegaConf
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    return {p.name: p.read_bytes() for p in folder.iterdir()}
+
+
+def test_a_finished_run_is_skipped_only_with_the_same_resolved_config(tmp_path):
+    from sdexp.eval.experiments import run_experiment
+    cfg = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[rod]")
+    before = _fake_finished_run(tmp_path / "run", cfg, {"rod_realtime_factor": 1.5})
+    # same config: the old metrics, nothing run (a real bench_sim would have written bench_sim.csv)
+    assert run_experiment(cfg, tmp_path / "run") == {"rod_realtime_factor": 1.5}
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()} == before
+    # another modulus: an error naming the key and both values, the folder untouched
+    other = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[rod]",
+                     "drone.youngs_modulus=3000")
+    with pytest.raises(UserError, match=r"finished run with another config \(drone\.youngs_modulus: "
+                                        r"6000\.0 there, 3000\.0 here\)"):
+        run_experiment(other, tmp_path / "run")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()} == before
+    # an interrupted run (config.yaml, no metrics.json) resumes only with its own config
+    (tmp_path / "run" / "metrics.json").unlink()
+    with pytest.raises(UserError, match="unfinished run with another config"):
+        run_experiment(other, tmp_path / "run")
+    # a finished run without its config cannot be vouched for
+    (tmp_path / "run" / "metrics.json").write_text("{}")
+    (tmp_path / "run" / "config.yaml").unlink()
+    with pytest.raises(UserError, match="without its config.yaml"):
+        run_experiment(cfg, tmp_path / "run")
+
+
+def test_a_folder_in_use_by_a_live_run_is_an_error_and_a_killed_runs_lock_is_taken_over(tmp_path):
+    from sdexp.eval.experiments import RUN_LOCK, claim
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; from sdexp.eval.experiments "
+         "import claim; claim(Path(sys.argv[1])); print('held', flush=True); time.sleep(60)", str(tmp_path)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(UserError, match=rf"in use by another run \(pid {holder.pid} "):
+            claim(tmp_path)
+    finally:
+        holder.kill()
+        holder.wait()
+    lock = claim(tmp_path)   # kill -9 left its lock: a dead pid's lock is stale
+    assert json.loads(lock.read_text())["pid"] == os.getpid() and lock.name == RUN_LOCK
+
+
+def test_only_one_of_two_concurrent_claims_wins(tmp_path):
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(2) as pool:
+        results = list(pool.map(_try_claim_and_hold, [str(tmp_path)] * 2))
+    assert sorted(results) == ["error", "held"]
+
+
+def _try_claim_and_hold(folder):
+    import time
+    from pathlib import Path
+    from sdexp.eval.experiments import claim
+    try:
+        claim(Path(folder))
+    except UserError:
+        return "error"
+    time.sleep(1.0)   # hold it while the other process tries
+    return "held"
+
+
+def test_an_output_folder_that_is_a_file_is_a_user_error(tmp_path):
+    from sdexp.eval.experiments import run_experiment
+    (tmp_path / "run").write_text("")
+    with pytest.raises(UserError, match="cannot write the run's output folder"):
+        run_experiment(make_cfg("experiment=gallery", "experiment.params.drones=[rod]"), tmp_path / "run")
+
+
+# ------------------------------------------------------------------ caches
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty", "no_arrays"])
+def test_a_damaged_cache_entry_is_rebuilt(tmp_path, damage, capsys):
+    import numpy as np
+    from sdexp.cache import cached_arrays
+    made = []
+
+    def make():
+        made.append(1)
+        return {"points": np.arange(12.0).reshape(4, 3), "elems": np.arange(4)[None]}
+
+    first = cached_arrays(tmp_path, "mesh3d-test", make)
+    path = tmp_path / "mesh3d-test.npz"
+    raw = path.read_bytes()
+    if damage == "truncate":
+        path.write_bytes(raw[: len(raw) // 2])
+    elif damage == "garbage":
+        path.write_bytes(raw[:40] + b"\0" * 64 + raw[104:])
+    elif damage == "empty":
+        path.write_bytes(b"")
+    else:
+        np.savez(path)
+    again = cached_arrays(tmp_path, "mesh3d-test", make)
+    assert len(made) == 2 and all(np.array_equal(first[k], again[k]) for k in first)
+    assert "damaged" in capsys.readouterr().err and path.read_bytes() == raw   # stored whole again
+    assert cached_arrays(tmp_path, "mesh3d-test", make) and len(made) == 2    # and read back
+
+
+def test_a_damaged_mesh_is_remeshed_not_a_traceback(tmp_path):
+    from sdexp.sim.drone import make_shape, mesh_shape
+    cfg = make_cfg("drone=rod")
+    shape = make_shape(cfg.drone)
+    points, elems = mesh_shape(shape, cfg.drone.mesh, str(tmp_path))
+    (entry,) = tmp_path.glob("mesh2d-*.npz")
+    entry.write_bytes(entry.read_bytes()[:100])
+    p2, e2 = mesh_shape(shape, cfg.drone.mesh, str(tmp_path))
+    assert (p2 == points).all() and (e2 == elems).all()
+
+
+def test_an_unwritable_cache_is_a_user_error(tmp_path):
+    import numpy as np
+    from sdexp.cache import cached_arrays
+    (tmp_path / "file").write_text("")
+    with pytest.raises(UserError, match="cache_dir .* cannot be written"):
+        cached_arrays(tmp_path / "file" / "cache", "k", lambda: {"a": np.zeros(1)})

@@ -92,6 +92,15 @@ def _same_kind(default: Any, value: Any) -> bool:
     return _kind(default) == _kind(value)
 
 
+def _check_nested(full: str, default: dict, value: dict) -> None:
+    """A mapping param with declared entries (e.g. layers: {linear: {...}}): no entry it lacks."""
+    for sub, v in value.items():
+        if sub not in default:
+            raise UserError(f"{full}.{sub} is not a parameter: allowed {', '.join(map(str, default))}")
+        if isinstance(default[sub], dict) and default[sub] and isinstance(v, dict):
+            _check_nested(f"{full}.{sub}", default[sub], v)
+
+
 def check_params(cfg: DictConfig) -> None:
     """experiment.params against the experiment's declared params: a misspelled or foreign key,
     a missing one, a value of the wrong type or range, an unknown drone: a UserError naming
@@ -123,6 +132,8 @@ def check_params(cfg: DictConfig) -> None:
             if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and ok(v) for v in items):
                 raise UserError(f"{full} = {value!r} is out of range: allowed {text}"
                                 + (" each" if isinstance(value, list) else ""))
+        if isinstance(default, dict) and default and isinstance(value, dict):
+            _check_nested(full, default, value)
         if (name, key) in NESTED_PARAMS and isinstance(value, dict):
             module, attr = NESTED_PARAMS[(name, key)].split(":")
             import dataclasses
