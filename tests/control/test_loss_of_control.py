@@ -22,14 +22,14 @@ NO_LIMITS = FlightConfig(max_tilt_deg=None, arena_margin=None)
 @pytest.fixture(scope="module")
 def rod(cache_dir):
     cfg = make_cfg("drone=rod", f"cache_dir={cache_dir}")
-    return cfg, build_drone(cfg.drone, cache_dir)
+    return cfg, build_drone(cfg.drone, cache_dir, cfg.sim.element)
 
 
 @pytest.fixture(scope="module")
 def leaf(cache_dir):
     """The coarse leaf of the discrepancy tests (599 tets): a 3D body that flies in ms a step."""
     cfg = make_cfg("drone=leaf", "drone.mesh.edge_length=0.5", "control=tuned", f"cache_dir={cache_dir}")
-    return cfg, build_drone(cfg.drone, cache_dir)
+    return cfg, build_drone(cfg.drone, cache_dir, cfg.sim.element)
 
 
 class Constant:
