@@ -277,3 +277,65 @@ def test_an_unwritable_cache_is_a_user_error(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(UserError, match="cache_dir .* cannot be written"):
         cached_arrays(tmp_path / "file" / "cache", "k", lambda: {"a": np.zeros(1)})
+
+
+# ------------------------------------------------------------------ measured logs
+
+def _logs(folder, rows=20, **meta_extra):
+    import numpy as np
+    from sdexp.discrepancy.logs import FORMAT, channel_names, write_flight, write_meta
+    rng = np.random.default_rng(0)
+    C = len(channel_names(2, 2))
+    for i in range(2):
+        write_flight(folder, f"flight_{i:03d}", 0.01 * np.arange(rows), rng.uniform(0, 3, (rows, 2)),
+                     rng.normal(scale=0.1, size=(rows, C)), 2, 2)
+    write_meta(folder, {"format": FORMAT, "version": 1, "drone": "rod", "dim": 2, "sample_rate": 100.0,
+                        "num_rotors": 2, "num_sensors": 2, **meta_extra})
+
+
+def _read(folder, **kw):
+    from sdexp.discrepancy.logs import read_logs
+    return read_logs(folder, "rod", 2, 2, 2, **kw)
+
+
+def test_clean_logs_read(tmp_path):
+    _logs(tmp_path)
+    assert len(_read(tmp_path, max_thrust=10.0).flights) == 2
+
+
+@pytest.mark.parametrize("column, row, value, allowed", [
+    ("p_x", 5, 1e308, "|p_x| <= 10000 m"),
+    ("u1", 3, 1e308, "|u1| <= 1000 N"),   # (no max_thrust given: the generic bound)
+    ("u0", 7, -40.0, "|u0| <= 15 N"),      # 1.5 x drone.max_thrust
+    ("s1", 2, 10.0, "|s1| <= 6.28319 rad"),
+    ("p_dot_y", 9, -5e3, "|p_dot_y| <= 1000 m/s"),
+    ("e_dot", 1, 1e200, "|e_dot| <= 1000 rad/s"),
+    ("e", 4, 1e300, "|e| <= 1000 rad"),
+    ("t", 0, -1e308, "|t| <= 1e+06 s"),
+])
+def test_implausible_readings_name_file_column_and_row(tmp_path, column, row, value, allowed):
+    import pandas as pd
+    _logs(tmp_path)
+    path = tmp_path / "flight_001.csv"
+    table = pd.read_csv(path)
+    table.loc[row, column] = value
+    table.to_csv(path, index=False)
+    before = path.read_bytes()
+    with pytest.raises(UserError) as info:
+        _read(tmp_path, max_thrust=None if column == "u1" else 10.0)
+    msg = str(info.value)
+    assert "flight_001.csv" in msg and f"column {column!r}, data row {row + 1}:" in msg and allowed in msg, msg
+    assert path.read_bytes() == before
+
+
+@pytest.mark.parametrize("meta, words", [
+    ({"sample_rate": "fast"}, ["sample_rate = 'fast'", "finite number"]),
+    ({"sample_rate": float("inf")}, ["sample_rate = inf"]),
+    ({"num_rotors": "two"}, ["num_rotors = 'two'", "whole number"]),
+    ({"dim": 2.5}, ["dim = 2.5", "whole number"]),
+])
+def test_bad_meta_numbers_name_the_key(tmp_path, meta, words):
+    _logs(tmp_path, **meta)
+    with pytest.raises(UserError) as info:
+        _read(tmp_path)
+    assert "meta.json" in str(info.value) and all(w in str(info.value) for w in words), str(info.value)

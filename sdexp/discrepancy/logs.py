@@ -94,9 +94,48 @@ def write_flight(folder: Path, name: str, flight_t, u, y, dim: int, num_sensors:
     return path
 
 
+# Largest plausible magnitude of a reading, by channel kind: beyond it no flight of a soft drone
+# lies (a 1e308 is a corrupt log, whose squares overflow to infinite losses): (bound, unit, what).
+PLAUSIBLE = {
+    "t": (1e6, "s", "a log's time"),
+    "u": (1e3, "N", "a rotor's commanded thrust"),
+    "p": (1e4, "m", "a drone's position"),
+    "p_dot": (1e3, "m/s", "a drone's speed"),
+    "e": (1e3, "rad", "an Euler angle (yaw unwrapped)"),
+    "e_dot": (1e3, "rad/s", "an angular rate"),
+    "s": (2 * np.pi, "rad", "a bend angle (atan2, plus noise)"),
+    "s_dot": (1e3, "rad/s", "a bend rate"),
+}
+
+
+def channel_kind(name: str) -> str:
+    """The PLAUSIBLE key of a log column: t, u, p, p_dot, e, e_dot, s or s_dot."""
+    if name == "t":
+        return "t"
+    if name.startswith("u"):
+        return "u"
+    for kind in ("p_dot", "e_dot", "s_dot", "p", "e", "s"):
+        if name.startswith(kind):
+            return kind
+    return "t"
+
+
+def _meta_number(meta_path: Path, meta: dict, key: str, integer: bool = False) -> float:
+    value = meta[key]
+    try:
+        number = float(value)
+        if isinstance(value, bool) or not np.isfinite(number) or (integer and number != int(number)):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise UserError(f"{meta_path}: {key} = {value!r} is not {'a whole' if integer else 'a finite'} "
+                        f"number") from None
+    return int(number) if integer else number
+
+
 def read_logs(folder, drone_name: str, num_rotors: int, num_sensors: int, dim: int,
-              min_rows: int = 2) -> Logs:
-    """Read and check a log folder; every problem is a UserError naming the file and column."""
+              min_rows: int = 2, max_thrust: float | None = None) -> Logs:
+    """Read and check a log folder; every problem is a UserError naming the file and column (and
+    the row of an implausible reading: PLAUSIBLE, commands beyond 1.5 x ``max_thrust``)."""
     folder = Path(folder).expanduser()
     if not folder.is_dir():
         raise UserError(f"discrepancy.measured = {str(folder)!r} is not a folder")
@@ -113,9 +152,9 @@ def read_logs(folder, drone_name: str, num_rotors: int, num_sensors: int, dim: i
     if meta["drone"] != drone_name:
         raise UserError(f"{meta_path}: logs are of drone {meta['drone']!r} but drone={drone_name!r} was given")
     for key, want in (("num_rotors", num_rotors), ("num_sensors", num_sensors), ("dim", dim)):
-        if key in meta and int(meta[key]) != want:
+        if key in meta and _meta_number(meta_path, meta, key, integer=True) != want:
             raise UserError(f"{meta_path}: {key} = {meta[key]} but drone {drone_name} has {want}")
-    rate = float(meta["sample_rate"])
+    rate = _meta_number(meta_path, meta, "sample_rate")
     if not rate > 0:
         raise UserError(f"{meta_path}: sample_rate = {meta['sample_rate']} must be > 0 Hz")
     channels = channel_names(dim, num_sensors)
@@ -139,6 +178,14 @@ def read_logs(folder, drone_name: str, num_rotors: int, num_sensors: int, dim: i
             bad = np.flatnonzero(~np.isfinite(col))
             if len(bad):
                 raise UserError(f"{path}: column {c!r} has {len(bad)} NaN/non-numeric value(s), first at data row {bad[0] + 1}")
+            bound, unit, what = PLAUSIBLE[channel_kind(c)]
+            if channel_kind(c) == "u" and max_thrust is not None:
+                bound, what = 1.5 * float(max_thrust), "a rotor's command (drone.max_thrust x 1.5)"
+            wild = np.flatnonzero(np.abs(col) > bound)
+            if len(wild):
+                i = wild[0]
+                raise UserError(f"{path}: column {c!r}, data row {i + 1}: {col[i]:.6g} {unit} is implausible "
+                                f"for {what}: allowed |{c}| <= {bound:g} {unit} ({len(wild)} such row(s))")
         if len(table) < min_rows:
             raise UserError(f"{path}: {len(table)} rows, need at least {min_rows}")
         t = table["t"].to_numpy(float)

@@ -97,7 +97,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
                  seed: int = 0, plots: bool = True, log=print) -> dict:
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
-    logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
+    logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim,
+                     max_thrust=drone.max_thrust)
     dt = float(_plain(sim_cfg)["control_dt"])
     if abs(logs.dt - dt) > 1e-9:
         raise UserError(f"{logs.folder / 'meta.json'}: sample_rate = {logs.meta['sample_rate']} Hz but the "
