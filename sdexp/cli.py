@@ -52,9 +52,12 @@ def _discard_if_empty(out_dir: Path) -> None:
             if log.stat().st_size == 0:
                 log.unlink()
         cwd = Path.cwd().resolve()
+        sweep = Path(HydraConfig.get().sweep.dir).resolve() if HydraConfig.initialized() else None
         for folder in [out_dir.resolve(), *out_dir.resolve().parents]:
             if folder == cwd or cwd not in folder.parents:
                 break
+            if folder == sweep and [p.name for p in folder.iterdir()] == ["multirun.yaml"]:
+                (folder / "multirun.yaml").unlink()   # a sweep whose first job was rejected
             folder.rmdir()   # only succeeds on an empty folder: outputs/<experiment>/<drone>/
     except OSError:
         pass

@@ -472,3 +472,5 @@ def validate(cfg: DictConfig | Config) -> None:
            "flights >= 1, seconds > 0")
     _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
     check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
+    from sdexp.sim.effects import check_config_effects
+    check_config_effects(s.effects)   # names, parameters and ranges, before the run starts

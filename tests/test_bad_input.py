@@ -78,6 +78,14 @@ def rejected(*overrides) -> str:
     ("drone=rod drone.num_sensors=300", "drone.num_sensors", "allowed 0 to 8"),
     ("drone=flower drone.num_rotors=10", "drone.num_rotors", "allowed 9"),
     ("drone=donut drone.num_sensors=5", "drone.num_sensors", "allowed 0 to 4"),
+    # effects: known names, known parameters (listed), physical ranges, finite numbers
+    ("+sim.effects=[{name:rotor_drag,k:-0.1}]", "sim.effects[0].k", "allowed >= 0"),
+    ("+sim.effects=[{name:rotor_drag,kk:0.1}]", "sim.effects[0].kk", "allowed k"),
+    ("+sim.effects=[{name:thrust_loss,fractoin:0.1}]", "sim.effects[0].fractoin", "allowed rotor, fraction"),
+    ("+sim.effects=[{name:rotor_dragg}]", "sim.effects[0].name", "rotor_drag"),
+    ("+sim.effects=[{name:wind,velocity:[1,0,inf]}]", "sim.effects[0].velocity[2]", "finite"),
+    ("+sim.effects=[{name:motor_lag,tau:-1}]", "motor_lag.tau", ">= 0 s"),
+    ("+sim.effects=[{name:payload,mass:nan}]", "sim.effects[0].mass", "finite"),
     # experiment.params: a checked set of keys, types and ranges
     ("+experiment.params.secnds=3", "experiment.params.secnds", "did you mean experiment.params.seconds"),
     ("+experiment.params.drones=[rod]", "experiment.params.drones", "allowed controllers, seconds, start, target"),
@@ -339,3 +347,12 @@ def test_bad_meta_numbers_name_the_key(tmp_path, meta, words):
     with pytest.raises(UserError) as info:
         _read(tmp_path)
     assert "meta.json" in str(info.value) and all(w in str(info.value) for w in words), str(info.value)
+
+
+def test_a_drone_override_that_no_benchmarked_drone_sees_is_an_error():
+    """The README's old sweep: drone.* landed on the default flower while bench_sim ran the rod."""
+    from sdexp.eval.experiments import check_overrides_reach
+    args = ["experiment=bench_sim", "experiment.params.drones=[rod]", "drone.youngs_modulus=3000"]
+    with pytest.raises(UserError, match=r"drone\.youngs_modulus=3000 changes drone flower.*add drone=rod"):
+        check_overrides_reach(make_cfg(*args), args)
+    check_overrides_reach(make_cfg(*args, "drone=rod"), [*args, "drone=rod"])   # reaches the rod

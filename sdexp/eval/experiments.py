@@ -149,6 +149,24 @@ def check_params(cfg: DictConfig) -> None:
                     raise UserError(f"{full}: drone {d!r} is unknown: choose from {', '.join(names)}")
 
 
+# experiments that run a list of drones (experiment.params.drones): only the one named drone=<name>
+# takes the drone.* overrides, the others are loaded from conf/drone/<name>.yaml
+MULTI_DRONE = ("bench_sim", "gallery")
+
+
+def check_overrides_reach(cfg: DictConfig, overrides: list[str] | None) -> None:
+    """A drone.* override that no drone of the run would see is an error, not a silent no-op."""
+    name = cfg.experiment.name
+    if not overrides or name not in MULTI_DRONE:
+        return
+    touched = [o for o in overrides if o.lstrip("+~").startswith("drone.")]
+    drones = cfg.experiment.params.get("drones")
+    if touched and drones is not None and cfg.drone.name not in drones:
+        raise UserError(f"{touched[0]} changes drone {cfg.drone.name}, which {name} does not run "
+                        f"(experiment.params.drones = {list(drones)}; the others are loaded from "
+                        f"conf/drone/): add drone={drones[0]} so that the override reaches it")
+
+
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -271,6 +289,7 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
         raise UserError(f"experiment.name = {name!r} is unknown: choose one of {sorted(RUNNERS)}")
     validate(cfg)
     check_params(cfg)
+    check_overrides_reach(cfg, overrides)
     out_dir = Path(out_dir)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     try:

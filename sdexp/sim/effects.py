@@ -25,6 +25,7 @@ A hook a class does not override is never called, so an effect pays only for wha
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections import deque
 from dataclasses import replace
 from typing import Any
@@ -438,7 +439,22 @@ def _import(path: str):
         raise UserError(f"sim.effects: _target_ {path!r} cannot be imported: {err}") from None
 
 
-def build_effects(entries) -> list[Effect]:
+# Ranges that a user's sim.effects entry must respect and that the constructors do not check,
+# because the discrepancy fits (sdexp.discrepancy.candidates) step their linear coefficients
+# through zero to either side: a config asks for the physical effect only.
+PHYSICAL = {
+    "rotor_drag": {"k": (lambda v: isinstance(v, (int, float)) and v >= 0, ">= 0 N s/m (drag resists motion)")},
+}
+
+
+def check_config_effects(entries) -> None:
+    """sim.effects as a user wrote them: known names, known parameters, physical ranges."""
+    if isinstance(entries, (DictConfig, ListConfig)):
+        entries = OmegaConf.to_container(entries, resolve=True)
+    build_effects([dict(e) if isinstance(e, dict) else e for e in entries or []], physical=True)
+
+
+def build_effects(entries, physical: bool = False) -> list[Effect]:
     """Objects from ``sim.effects`` entries (dicts, DictConfigs or Effect instances)."""
     if isinstance(entries, (DictConfig, ListConfig)):
         entries = OmegaConf.to_container(entries, resolve=True)
@@ -461,10 +477,23 @@ def build_effects(entries) -> list[Effect]:
                 raise UserError(f"sim.effects[{k}].name = {name!r} is unknown: choose one of "
                                 f"{sorted(LIBRARY)} or give a _target_ class")
             cls = LIBRARY[name]
+        label = getattr(cls, "name", getattr(cls, "__name__", str(cls)))
+        try:
+            allowed = [q for q in inspect.signature(cls).parameters if q not in ("self", "args", "kwargs")]
+        except (TypeError, ValueError):
+            allowed = None
+        unknown = [q for q in e if allowed is not None and q not in allowed]
+        if unknown:
+            raise UserError(f"sim.effects[{k}].{unknown[0]} is not a parameter of {label}: allowed "
+                            f"{', '.join(allowed) or 'none'}")
+        for q, (ok, text) in (PHYSICAL.get(label, {}) if physical else {}).items():
+            if q in e and not ok(e[q]):
+                raise UserError(f"sim.effects[{k}].{q} = {e[q]!r} is not physical for {label}: allowed {text}")
         try:
             obj = cls(**e)
         except TypeError as err:
-            raise UserError(f"sim.effects[{k}] ({getattr(cls, 'name', cls)}): {err}") from None
+            raise UserError(f"sim.effects[{k}] ({label}): {err}; allowed parameters "
+                            f"{', '.join(allowed or [])}") from None
         if not isinstance(obj, Effect):
             raise UserError(f"sim.effects[{k}]: {cls} is not an sdexp.sim.effects.Effect")
         out.append(obj)
