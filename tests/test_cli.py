@@ -125,13 +125,15 @@ def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
 def test_validate_fem_runs_shrunk_and_matches_the_stored_reference(tmp_path):
     """The structured-mesh cases are deterministic: a shrunk run reproduces the committed
     full run's numbers for the cases it shares (results/validate_fem/metrics.json)."""
-    cfg = make_cfg("experiment=validate_fem", "experiment.params.layers_2d=[1,2]",
-                   "experiment.params.layers_3d=[1]", "experiment.params.drone_edge_length=null")
+    cfg = make_cfg("experiment=validate_fem", "experiment.params.layers.linear={2d: [1, 2], 3d: [1]}",
+                   "experiment.params.layers.quadratic={2d: [1], 3d: [1]}", "experiment.params.drone_edge_length=null")
     metrics = run_experiment(cfg, tmp_path)
     assert (tmp_path / "cantilever.png").exists()
     reference = json.loads((CONF_DIR.parent / "results" / "validate_fem" / "metrics.json").read_text())
-    for key in ("rigid_rise_error", "sag_error_structured_2D_2layers", "freq_error_structured_2D_2layers",
-                "sag_error_structured_3D_1layers", "freq_error_structured_3D_1layers"):
+    for key in ("rigid_rise_error", "sag_error_linear_structured_2D_2layers", "freq_error_linear_structured_2D_2layers",
+                "sag_error_linear_structured_3D_1layers", "freq_error_linear_structured_3D_1layers",
+                "sag_error_quadratic_structured_2D_1layers", "sag_error_quadratic_structured_3D_1layers",
+                "freq_error_quadratic_structured_3D_1layers"):
         assert metrics[key] == pytest.approx(reference[key], rel=1e-3, abs=1e-4), key
 
 
