@@ -125,7 +125,29 @@ def test_torch_rotation_and_rate_matrices_match_sdexp_rotations():
 
 # ------------------------------------------------------------------------------ hover
 
-@pytest.mark.parametrize("geom", [plus_quad(), plus_quad(True), lopsided(), rod_2d()], ids=["quad", "quad5", "lopsided", "rod2d"])
+def test_hover_thrust_of_tilted_rotors_spends_no_thrust_on_what_they_barely_make():
+    """Seven randomly tilted rotors: lift and roll/pitch torque exactly; the horizontal force
+    and yaw they can make only along a weak direction (0.3% of the strongest) are left there
+    rather than cancelled with 100 N of thrust on a 0.8 kg body (what the exact solve spent)."""
+    geom = lopsided()
+    u = geom.hover_thrust(G)
+    F, tau = wrench(geom, u)
+    assert F[1] == pytest.approx(geom.mass * G, abs=1e-12)
+    np.testing.assert_allclose(tau[[0, 2]], 0.0, atol=1e-12)
+    weight = geom.mass * G
+    assert np.abs(u).max() < weight and np.hypot(F[0], F[2]) < 0.1 * weight
+
+
+def test_hover_thrust_of_nearly_vertical_rotors_is_the_vertical_one():
+    """A millirad of tilt (a curved mesh's rotor normals) changes the hover by as little."""
+    geom = plus_quad()
+    rng = np.random.default_rng(3)
+    d = geom.rotor_dir + 1e-3 * rng.normal(size=geom.rotor_dir.shape)
+    tilted = RigidGeometry(geom.mass, geom.inertia, geom.rotor_pos, d / np.linalg.norm(d, axis=1, keepdims=True))
+    np.testing.assert_allclose(tilted.hover_thrust(G), geom.hover_thrust(G), rtol=1e-2)
+
+
+@pytest.mark.parametrize("geom", [plus_quad(), plus_quad(True), rod_2d()], ids=["quad", "quad5", "rod2d"])
 def test_hover_thrust_balances_gravity_with_no_torque(geom):
     u = geom.hover_thrust(G)
     F, tau = wrench(geom, u)
