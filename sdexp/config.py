@@ -31,6 +31,8 @@ class MeshConfig:
     coarsen: bool = False      # fTetWild drops every vertex it can while keeping the quality
     mirror: List[str] = field(default_factory=list)  # 3D: mesh one cell, reflect across x = 0 / z = 0
                                                      # (sdexp.sim.mirror); [] = mesh the whole body
+    layers: int = 0            # 3D: 0 = fTetWild tetrahedralises the closed surface; n >= 1 = the outline
+                               # triangulated and extruded through the thickness in n layers (no slivers)
 
 
 @dataclass
@@ -401,6 +403,8 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
                                  and set(d.mesh.mirror) <= {"x", "z"}),
            "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
+    _check(d.mesh.layers == 0 or (d.dim == 3 and 1 <= d.mesh.layers <= 8), "drone.mesh.layers", d.mesh.layers,
+           "0 (fTetWild) or 1-8 layers through the thickness (3D drones only)")
     _check(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
     _check(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
            "null or in (0, sim.control_dt]")

@@ -1,7 +1,8 @@
-"""``sdexp experiment=bench_sim``: simulator speed for every drone, and cost against element
-count for the flower refined, with the petal bend under a fixed load at each resolution beside
-it (the accuracy the speed is bought with: coarse linear tets are too stiff in bending). Timings
-are printed and written, never asserted."""
+"""``sdexp experiment=bench_sim``: simulator speed for every drone with both element types, and
+the speed/accuracy frontier of the flower refined. Beside every timing the accuracy it is bought
+with: the IMU bend and the compliance under a fixed load (sdexp.eval.convergence) and their
+errors against the converged body (Richardson over three refined quadratic meshes, cached). Timings are
+printed and written, never asserted; a blow-up during a timing is counted in the CSV."""
 from __future__ import annotations
 
 import time
@@ -11,7 +12,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from sdexp.sim.statics import held_bend, outer_rotors
+from sdexp.eval.convergence import converged_response, static_response
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
 
@@ -25,14 +26,14 @@ def load_drone_cfg(name: str):
 def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25) -> dict:
     """Wall time of ``seconds`` of simulated flight, timed in blocks of ``block`` control steps:
     the figures are the median block's (this VM's neighbours move single timings by 30-50%),
-    with the fastest block's beside them."""
+    with the fastest block's beside them. A blow-up resets the drone and is counted."""
     sim = Simulator(drone, cfg.sim, cfg.noise, seed)
     rng = np.random.default_rng(seed)
     # random thrust holds, as in data generation: the drone tumbles and deforms
     hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
     sim.step(hold)  # compile / warm up
     steps = max(block, int(round(seconds / cfg.sim.control_dt)))
-    walls = []
+    walls, blowups = [], []
     for k in range(steps):
         if k % block == 0:
             t0 = time.perf_counter()
@@ -40,6 +41,7 @@ def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25
             hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
         sim.step(hold)
         if not sim.alive:
+            blowups.append(f"{sim.failure.reason} at {sim.t:.2f} s")
             sim.reset()
         if k % block == block - 1:
             walls.append(time.perf_counter() - t0)
@@ -47,14 +49,32 @@ def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25
     best = min(walls) / block
     n_el = drone.fem.n_elems
     return {
-        "drone": drone_cfg.name, "dim": drone.dim, "elements": n_el, "vertices": len(drone.fem.rest),
-        "edge_length": drone_cfg.mesh.edge_length, "substep_ms": 1e3 * sim.dt,
-        "substeps_per_step": sim.n_sub,
+        **stepping(drone, drone_cfg, sim),
         "element_substeps_per_s": n_el * sim.n_sub / step_wall,
         "us_per_substep": 1e6 * step_wall / sim.n_sub,
         "realtime_factor": cfg.sim.control_dt / step_wall,
         "realtime_factor_best_block": cfg.sim.control_dt / best,
+        "blowups": len(blowups), "blowup_detail": "; ".join(blowups),
     }
+
+
+def stepping(drone, drone_cfg, sim) -> dict:
+    """What a mesh costs without timing it: elements and the substeps of its stable step."""
+    return {"drone": drone_cfg.name, "element": "quadratic" if drone.fem.order == 2 else "linear",
+            "dim": drone.dim, "elements": drone.fem.n_elems, "nodes": len(drone.fem.rest),
+            "edge_length": drone_cfg.mesh.edge_length, "substep_ms": 1e3 * sim.dt,
+            "substeps_per_step": sim.n_sub}
+
+
+def accuracy(drone, reference: dict, gravity: float, load: float) -> dict:
+    """The drone's static response beside the converged one, as relative errors."""
+    res = static_response(drone, gravity, load)
+    out = {}
+    for q in ("bend", "compliance"):
+        ref = reference[f"{q}_converged"]
+        out.update({q: res[q], f"{q}_converged": ref, f"{q}_error": res[q] / ref - 1,
+                    f"{q}_reference_uncertainty": reference[f"{q}_uncertainty"] / abs(ref)})
+    return out
 
 
 def run(cfg, out_dir: Path) -> dict:
@@ -63,26 +83,48 @@ def run(cfg, out_dir: Path) -> dict:
 
     p = cfg.experiment.params
     names = list(p.get("drones") or drone_names())
+    elements = list(p.elements)
+    gravity, load = float(cfg.sim.gravity), float(p.bend_load)
+    refine = list(p.refine)
     rows = []
     for name in tqdm(names, desc="bench_sim drones"):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
-        drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
-        rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed))})
-    for edge in tqdm(list(p.get("scaling_edges", [])), desc="bench_sim scaling"):
-        d = load_drone_cfg(p.get("scaling_drone", "flower"))
-        d.mesh.edge_length = float(edge)
-        drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
-        row = time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed))
-        # mean bend of the peripheral sensors, outer rotors pushing bend_load N harder than the rest
-        row["bend_deg"] = float(held_bend(drone, cfg.sim, outer_rotors(drone), float(p.bend_load)).mean())
-        rows.append({"series": "scaling", **row})
+        ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
+        for element in elements:
+            drone = build_drone(d, cfg.cache_dir, element)
+            rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
+                         **accuracy(drone, ref, gravity, load)})
+    for name in tqdm(names if p.resolution_factors else [], desc="bench_sim resolutions"):
+        d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
+        ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
+        for factor in p.resolution_factors:
+            coarse = OmegaConf.merge(d, {"mesh": {"edge_length": float(d.mesh.edge_length) * factor}})
+            drone = build_drone(coarse, cfg.cache_dir, "quadratic")
+            sim = Simulator(drone, cfg.sim, cfg.noise, 0)
+            rows.append({"series": "resolution", **stepping(drone, coarse, sim), "factor": factor,
+                         **accuracy(drone, ref, gravity, load)})
+    scaling = p.get("scaling_drone")
+    if scaling:
+        base = cfg.drone if scaling == cfg.drone.name else load_drone_cfg(scaling)
+        ref = converged_response(base, cfg.cache_dir, refine, gravity, load)
+        for element in elements:
+            for edge in tqdm(list(p.scaling_edges[element]), desc=f"bench_sim {scaling} {element}"):
+                d = OmegaConf.merge(base, {"mesh": {"edge_length": float(edge)}})
+                drone = build_drone(d, cfg.cache_dir, element)
+                rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
+                             **accuracy(drone, ref, gravity, load)})
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "bench_sim.csv", index=False)
     bench_plot(table, out_dir / "bench_sim.png")
-    print(table.drop(columns=["series"]).to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
+            "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
+    print(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     out = {}
     for r in rows:
         if r["series"] == "drone":
-            out[f"{r['drone']}_realtime_factor"] = r["realtime_factor"]
-            out[f"{r['drone']}_element_substeps_per_s"] = r["element_substeps_per_s"]
+            tag = f"{r['drone']}_{r['element']}"
+            out[f"{tag}_realtime_factor"] = r["realtime_factor"]
+            out[f"{tag}_element_substeps_per_s"] = r["element_substeps_per_s"]
+            out[f"{tag}_bend_error"] = r["bend_error"]
+            out[f"{tag}_compliance_error"] = r["compliance_error"]
     return out

@@ -15,7 +15,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from sdexp.cache import atomic_write
-from sdexp.config import validate
+from sdexp.config import ELEMENTS, validate
 from sdexp.errors import UserError
 
 # name -> "module:function"; each function is run(cfg, out_dir) -> dict of metrics
@@ -54,7 +54,7 @@ PARAM_RANGES = {
     "flight_attempts": _POSITIVE, "workers": _POSITIVE, "seeds": _NONNEGATIVE, "nulls": _NONNEGATIVE,
     "unmodelled": _NONNEGATIVE, "raw_hidden": _POSITIVE, "drone_edge_length": _POSITIVE,
     "test_seed_offset": _NONNEGATIVE, "scaling_edges": _POSITIVE, "n_values": _POSITIVE,
-    "layers_2d": _POSITIVE, "layers_3d": _POSITIVE, "noise_levels": _NONNEGATIVE,
+    "layers": _POSITIVE, "refine": _POSITIVE, "noise_levels": _NONNEGATIVE,
 }
 
 
@@ -101,6 +101,14 @@ def _check_nested(full: str, default: dict, value: dict) -> None:
             _check_nested(f"{full}.{sub}", default[sub], v)
 
 
+def _leaves(value) -> list:
+    """The numbers of a param: itself, a list's items, or (a dict of lists, per element type
+    or dimension) all of theirs."""
+    if isinstance(value, dict):
+        return [v for sub in value.values() for v in _leaves(sub)]
+    return list(value) if isinstance(value, list) else [value]
+
+
 def check_params(cfg: DictConfig) -> None:
     """experiment.params against the experiment's declared params: a misspelled or foreign key,
     a missing one, a value of the wrong type or range, an unknown drone: a UserError naming
@@ -128,7 +136,7 @@ def check_params(cfg: DictConfig) -> None:
             raise UserError(f"{full} = {value!r}: allowed a whole number")
         if key in PARAM_RANGES and value is not None:
             ok, text = PARAM_RANGES[key]
-            items = value if isinstance(value, list) else [value]
+            items = _leaves(value)
             if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and ok(v) for v in items):
                 raise UserError(f"{full} = {value!r} is out of range: allowed {text}"
                                 + (" each" if isinstance(value, list) else ""))
@@ -142,6 +150,8 @@ def check_params(cfg: DictConfig) -> None:
                 if sub not in fields:
                     raise UserError(f"{full}.{sub} is not a parameter of {name}'s {key}: allowed "
                                     f"{', '.join(fields)}")
+        if key == "elements" and not set(value) <= set(ELEMENTS):
+            raise UserError(f"{full} = {value!r}: allowed a list of {', '.join(ELEMENTS)}")
         if key in ("drones", "scaling_drone") and value is not None:
             names = sorted(q.stem for q in (CONF_DIR / "drone").glob("*.yaml"))
             for d in (value if isinstance(value, list) else [value]):

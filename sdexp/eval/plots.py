@@ -7,6 +7,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 
@@ -35,35 +36,55 @@ def refinement_plot(table: pd.DataFrame, path: Path) -> None:
 
 
 def bench_plot(table: pd.DataFrame, path: Path) -> None:
-    """Real-time factor per drone, cost against element count (linear scaling), and speed
-    against bending accuracy over the refined flower meshes."""
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4))
+    """Per drone: real-time factor and bend error of both element types; and the flower's
+    speed/accuracy frontier (bend error against real-time factor over its refinements)."""
+    fig, axes = plt.subplots(1, 4, figsize=(22, 5.5))
     base = table[table["series"] == "drone"]
-    axes[0].barh(base["drone"], base["realtime_factor"], color="tab:blue")
+    colors = {"linear": "tab:orange", "quadratic": "tab:blue"}
+    names = list(dict.fromkeys(base["drone"]))
+    y = np.arange(len(names))
+    elements = list(dict.fromkeys(base["element"]))
+    width = 0.8 / max(len(elements), 1)
+    for k, element in enumerate(elements):
+        rows = base[base["element"] == element].set_index("drone").reindex(names)
+        off = (k - (len(elements) - 1) / 2) * width
+        axes[0].barh(y + off, rows["realtime_factor"], height=width, color=colors.get(element), label=element)
+        axes[1].barh(y + off, 100 * rows["bend_error"], height=width, color=colors.get(element), label=element)
+    for ax in axes[:2]:
+        ax.set_yticks(y, names)
+        ax.invert_yaxis()
     axes[0].axvline(10, color="r", ls="--", label="10x real time")
-    axes[0].set_xlabel("real-time factor (simulated s / wall s)")
-    axes[0].legend()
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("real-time factor (simulated s / wall s, 2 cores)")
+    axes[0].set_title("speed at the default mesh")
+    axes[1].axvspan(-10, 10, color="g", alpha=0.1, label="+-10%")
+    axes[1].axvline(0, color="k", lw=0.8)
+    axes[1].set_xlabel("bend error against the converged body (%)")
+    axes[1].set_title("accuracy at the default mesh (negative: too stiff)")
     scale = table[table["series"] == "scaling"]
-    axes[1].loglog(scale["elements"], scale["us_per_substep"], "o-", label="flower, refined")
-    if len(scale):
-        e0, t0 = scale["elements"].iloc[-1], scale["us_per_substep"].iloc[-1]
-        axes[1].loglog(scale["elements"], t0 * scale["elements"] / e0, "k--", lw=0.8, label="linear")
-    axes[1].set_xlabel("elements")
-    axes[1].set_ylabel("microseconds per substep")
-    axes[1].legend()
-    axes[1].minorticks_off()
-    if "bend_deg" in scale and len(scale):
-        axes[2].semilogx(scale["realtime_factor"], scale["bend_deg"], "o-", color="tab:blue")
-        for _, r in scale.iterrows():
-            axes[2].annotate(f"{r['elements']} tets", (r["realtime_factor"], r["bend_deg"]), fontsize=7,
+    for element, group in scale.groupby("element", sort=False):
+        axes[2].semilogx(group["realtime_factor"], 100 * group["bend_error"], "o-", color=colors.get(element),
+                         label=f"{group['drone'].iloc[0]}, {element}")
+        for _, r in group.iterrows():
+            axes[2].annotate(f"{r['elements']}", (r["realtime_factor"], 100 * r["bend_error"]), fontsize=7,
                              textcoords="offset points", xytext=(4, 4))
-        axes[2].axvline(10, color="r", ls="--", label="10x real time")
-        axes[2].axhline(scale["bend_deg"].iloc[-1], color="k", ls=":", lw=0.8, label="finest mesh")
-        axes[2].set_xlabel("real-time factor")
-        axes[2].set_ylabel("petal bend under a fixed load (deg)")
-        axes[2].legend(fontsize=8)
+    axes[2].axvline(10, color="r", ls="--", label="10x real time")
+    axes[2].axhspan(-10, 10, color="g", alpha=0.1, label="+-10%")
+    axes[2].set_xlabel("real-time factor (labels: elements)")
+    axes[2].set_ylabel("bend error (%)")
+    axes[2].set_title("speed / accuracy frontier over mesh resolutions")
+    res = table[table["series"] == "resolution"]
+    for name, group in res.groupby("drone", sort=False):
+        cost = group["elements"] * group["substeps_per_step"]
+        err = 100 * np.maximum(np.abs(group["compliance_error"]), np.abs(group["bend_error"].fillna(0)))
+        axes[3].loglog(cost, err.clip(lower=0.1), "o-", label=name)
+    axes[3].axhline(10, color="g", ls="--", label="10%")
+    axes[3].set_xlabel("elements x substeps per control step (cost)")
+    axes[3].set_ylabel("larger of |bend|, |compliance| error (%)")
+    axes[3].set_title("quadratic meshes coarsened x1, x1.4, x2")
     for ax in axes:
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -15,6 +15,7 @@ from sdexp.sim.sensors import ImuPatches, SensorLayout, build_imu_patches
 from sdexp.sim.shape import Shape
 
 MESH_FORMAT = 1
+LAYERED_FORMAT = 1   # bump when shapes3d._Plate.layered_mesh changes what it makes
 
 
 @dataclass
@@ -82,16 +83,21 @@ def make_shape(cfg) -> Shape:
 def drone_key(drone: dict) -> dict:
     """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
     its default is dropped, so a drone meshed as before keeps what was cached before the option."""
-    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k == "mirror" and not v)}
+    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k in ("mirror", "layers") and not v)}
     return {**drone, "mesh": mesh}
 
 
 def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``shape`` with the ``drone.mesh`` settings, through the cache."""
     planes = list(mesh.get("mirror", []))
+    layers = int(mesh.get("layers", 0))
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
                "h": shape.holes.round(12).tolist(), "edge": mesh.edge_length,
-               "tetwild": [mesh.stop_energy, mesh.coarsen] if shape.dim == 3 else None}
+               "tetwild": [mesh.stop_energy, mesh.coarsen] if shape.dim == 3 and not layers else None}
+    if layers:   # the fTetWild meshes keep the keys they had before the option
+        if shape.layered_mesh is None:
+            raise UserError(f"drone.mesh.layers = {layers}: the {shape.dim}D shape is not a plate; set it to 0")
+        payload["layers"] = [layers, LAYERED_FORMAT]
     if planes:   # the whole-body meshes keep the keys they had before the option
         from sdexp.sim.mirror import asymmetric_parts
         bad = asymmetric_parts(shape, planes)
@@ -101,7 +107,13 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
         payload["mirror"] = planes
 
     def make() -> dict[str, np.ndarray]:
-        if shape.dim == 3:
+        if layers:
+            from sdexp.sim.mirror import AXES
+            try:
+                pts, el = shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes))
+            except ValueError as err:
+                raise UserError(f"drone.mesh.mirror = {planes}: {err}") from None
+        elif shape.dim == 3:
             from sdexp.sim.tetmesh import tet_mesh
 
             def tets(vertices, faces):

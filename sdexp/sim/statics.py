@@ -23,7 +23,7 @@ def outer_rotors(drone, along_z: bool = False) -> np.ndarray:
     fem = drone.fem
     _, _, _, pos, _ = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
     reach = np.linalg.norm(pos[:, [0, 2]], axis=1) if fem.dim == 3 else np.abs(pos[:, 0])
-    mask = reach > 0.5 * reach.max()
+    mask = reach > 0.501 * reach.max()   # a rotor at exactly half the reach (the rod's) is inner, not a rounding tie
     if along_z:
         mask &= np.abs(pos[:, 2]) > np.abs(pos[:, 0])
     return mask

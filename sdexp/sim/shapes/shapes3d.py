@@ -117,6 +117,15 @@ def _split_at_zero(loop: np.ndarray, cols: list[int]) -> np.ndarray:
     return loop
 
 
+def _resample_closed(loop: np.ndarray, spacing: float) -> np.ndarray:
+    """The closed polyline ``loop`` as points about ``spacing`` apart along it (at least
+    eight), equal arc length, the first point kept."""
+    closed = np.vstack([loop, loop[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    t = np.linspace(0.0, s[-1], max(8, int(round(s[-1] / spacing))), endpoint=False)
+    return np.c_[np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])]
+
+
 def _resample(line: np.ndarray) -> np.ndarray:
     """Points about _SEGMENT apart along an open polyline, equal arc length, ends kept."""
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
@@ -267,13 +276,20 @@ class _Plate:
     def cell_surface(self, axes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Closed surface of the part of the plate on the positive side of the mirror planes
         through the centre normal to ``axes`` (0: x, 2: z): the cell that, meshed and reflected
-        across them (``sdexp.sim.mirror``), gives a mesh exactly as symmetric as the design.
-        The outline is split where it crosses a plane and the plane's chords through the body
-        are constrained segments, so no planar triangle straddles a plane."""
+        across them (``sdexp.sim.mirror``), gives a mesh exactly as symmetric as the design."""
         cols = [{0: 0, 2: 1}[a] for a in axes]   # planar (x, z) columns of the cut axes
+        opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if self.d.profile or self.d.taper else "p"
+        return self._closed(*self._planar_cell(cols, opts))
+
+    def _planar_cell(self, cols: list[int], options: str, spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Planar triangles of the part on the positive side of the planes c = 0 for c in
+        ``cols`` (the whole outline when empty): the outline (resampled ``spacing`` apart, in
+        design coordinates, if given) split where it crosses a plane, the planes' chords
+        through the body constrained, so no triangle straddles a plane."""
         if not np.all(np.abs(self.shift[cols]) < 1e-9):
             raise ValueError(f"{self.d.name}: the body is not centred across the mirror plane(s)")
-        points, segments = _closed_loops([_split_at_zero(loop, cols) for loop in self.d.loops])
+        loops = self.d.loops if spacing is None else [_resample_closed(loop, spacing) for loop in self.d.loops]
+        points, segments = _closed_loops([_split_at_zero(loop, cols) for loop in loops])
         if self.d.profile or len(cols) == 2:   # the dome's peak, or where the two planes cross
             points = np.vstack([points, np.zeros((1, 2))])
         for c in cols:   # chords of the plane through the body, between consecutive crossings
@@ -282,9 +298,51 @@ class _Plate:
             mid = 0.5 * (points[on[:-1]] + points[on[1:]])
             inside = self.d.inside(mid) & (np.diff(points[on, 1 - c]) > 0)
             segments.append(np.c_[on[:-1], on[1:]][inside])
-        planar, tris = self._triangulate(points, np.vstack(segments))
+        pslg = {"vertices": points, "segments": np.vstack(segments)}
+        if self.d.hole_points:
+            pslg["holes"] = np.array(self.d.hole_points, dtype=float)
+        tri = triangle.triangulate(pslg, options)
+        planar, tris = tri["vertices"], tri["triangles"].astype(np.int64)
         centroid = planar[tris].mean(axis=1)
-        return self._closed(planar, tris[np.all(centroid[:, cols] > 0, axis=1)])
+        return planar, tris[np.all(centroid[:, cols] > 0, axis=1)] if cols else tris
+
+    def layered_mesh(self, edge: float, layers: int, axes: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
+        """A tet mesh that follows the plate: its outline triangulated (Triangle, quality 30
+        deg, triangles of about ``edge`` on the fitted body) and extruded along the mid-surface
+        normals through the thickness in ``layers`` layers, each prism cut into three tets
+        (the diagonal of a side face from its lower-indexed bottom node, so neighbours agree).
+        No slivers, so a larger stable step than fTetWild's mesh; deterministic; with ``axes``
+        the planar mesh of one cell reflected across the mirror planes, exactly symmetric."""
+        cols = [{0: 0, 2: 1}[a] for a in axes]
+        area = edge ** 2 * np.sqrt(3) / 4 / self.scale.prod()   # in design coordinates
+        planar, tris = self._planar_cell(cols, f"pq30a{area:.8f}", edge / np.sqrt(self.scale.prod()))
+        used, tris = np.unique(tris, return_inverse=True)
+        planar, tris = planar[used], tris.reshape(-1, 3)
+        for c in cols:   # reflect, sharing the nodes on the plane
+            n = len(planar)
+            off = np.flatnonzero(planar[:, c] != 0.0)
+            image = np.arange(n)
+            image[off] = n + np.arange(len(off))
+            mirrored = planar[off].copy()
+            mirrored[:, c] *= -1
+            planar = np.vstack([planar, mirrored])
+            tris = np.vstack([tris, image[tris][:, [0, 2, 1]]])
+        q = planar * self.scale + self.shift
+        mid, normal = self._mid(q)
+        half = self._half_thickness(q)
+        n = len(q)
+        points = np.vstack([mid + (2 * k / layers - 1) * half * normal for k in range(layers + 1)])
+        v = np.sort(tris, axis=1)
+        tets = []
+        for k in range(layers):
+            b, t = v + k * n, v + (k + 1) * n
+            tets += [np.c_[b[:, 0], b[:, 1], b[:, 2], t[:, 2]], np.c_[b[:, 0], b[:, 1], t[:, 1], t[:, 2]],
+                     np.c_[b[:, 0], t[:, 0], t[:, 1], t[:, 2]]]
+        tets = np.vstack(tets)
+        d = points[tets[:, 1:]] - points[tets[:, :1]]
+        flip = np.linalg.det(d) < 0
+        tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+        return points, tets.astype(np.int32)
 
     def lift(self, xz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points of the upper surface at planar positions xz (k, 2), its normals there, and
@@ -332,7 +390,8 @@ def _finish(plate: _Plate, radii: np.ndarray, angles: np.ndarray, num_sensors: i
         frame, frame_normals = _anchors(plate, "centre IMU", plate.shift[None])
     return Shape(dim=3, vertices=vertices, faces=faces, holes=np.zeros((0, 3)), center=center,
                  rotors=rotors, rotor_normals=rotor_normals, imus=imus, imu_normals=imu_normals,
-                 frame_imus=frame, frame_normals=frame_normals, cell_surface=plate.cell_surface)
+                 frame_imus=frame, frame_normals=frame_normals, cell_surface=plate.cell_surface,
+                 layered_mesh=plate.layered_mesh)
 
 
 # ---------------------------------------------------------------------------------------

@@ -1,0 +1,219 @@
+"""How far a drone's mesh is from the continuum it models: the bend under one fixed load on the
+default mesh and on three refinements of it, with the converged bend from Richardson
+extrapolation (linear tets at the drones' default resolution bend about half as much as the
+material they model; quadratic ones should not).
+
+The load: every node's weight, the rest shape's hover thrust (geometry.rest_hover_thrust) and
+``load`` N more on each outer rotor (statics.outer_rotors), along each rotor patch's rest normal,
+spread as the simulator spreads it; the net force and torque this leaves are balanced by the
+rigid acceleration they cause, as in free flight (inertia relief, d'Alembert). The same for
+every drone (a two-rotor drone has no pattern free of net lift to push with).
+
+The solve: the static linear response K u = f of the free body (three nodes hold the six rigid
+motions; the balanced load makes the answer independent of which), K the stiffness of the
+simulator's co-rotated elements at rest (assembled here; a test checks it against the kernels'
+forces). Why static and linear: a dynamic hold measures the floppy drones' transients (the
+rod's first free mode has a 9 s period and relaxes over tens of seconds), and the locking
+this measures is a stiffness error, the same in the linear regime as near it.
+
+The measures: the RMS over the peripheral IMUs of the bend angle s (deg), read by the sensor
+pipeline from the rest positions plus the displacement (scaled to a small strain and back: s is
+linear in u there); and the compliance f . u, the whole body's stiffness (static_response).
+
+Richardson: element sizes h (mean element volume's cube root, area's square root in 2D:
+unstructured meshes do not refine by the nominal edge ratio), bends b on three meshes, fit
+b = b_inf + C h^p exactly (p by bisection). Where they do not converge monotonically, b_inf is
+the finest bend and its spread to the next the uncertainty.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from sdexp.cache import cached_arrays, key_of
+from sdexp.sim.drone import build_drone, drone_key
+from sdexp.sim.fem import FemModel
+from sdexp.sim.geometry import rest_hover_thrust
+from sdexp.sim.quadratic import EDGES_2D, EDGES_3D, QUAD_2D, QUAD_3D
+from sdexp.sim.sensors import decompose, read_imus
+from sdexp.sim.statics import outer_rotors
+
+FORMAT = 4
+
+
+def shape_gradients(fem: FemModel) -> tuple[np.ndarray, np.ndarray]:
+    """Rest gradients of the shape functions at the quadrature points, (nq, ne, nodes, dim),
+    and the points' weights (nq,), for linear (one point) or quadratic elements."""
+    d = fem.dim
+    grad = np.concatenate([-fem.Bm.sum(axis=1, keepdims=True), fem.Bm], axis=1)   # grad L_j (ne, d+1, d)
+    if fem.order == 1:
+        return grad[None], np.ones(1)
+    rule, edges = (QUAD_3D, EDGES_3D) if d == 3 else (QUAD_2D, EDGES_2D)
+    out = []
+    for L in rule:
+        corners = (4 * L - 1)[None, :, None] * grad
+        mids = 4 * (L[edges[:, 0]][None, :, None] * grad[:, edges[:, 1]]
+                    + L[edges[:, 1]][None, :, None] * grad[:, edges[:, 0]])
+        out.append(np.concatenate([corners, mids], axis=1))
+    return np.stack(out), np.full(len(rule), 1.0 / len(rule))
+
+
+def stiffness(fem: FemModel, chunk: int = 4000) -> sp.csr_matrix:
+    """The stiffness of linear elasticity at rest, (nv dim)^2: the linearisation of the
+    co-rotated force at the rest shape (the rotation's derivative acts on zero stress there)."""
+    G, w = shape_gradients(fem)
+    d, n = fem.dim, fem.elems.shape[1]
+    rows, cols, vals = [], [], []
+    eye = np.eye(d)
+    for e0 in range(0, fem.n_elems, chunk):
+        sl = slice(e0, e0 + chunk)
+        K = np.zeros((len(fem.vol[sl]), n, d, n, d))
+        for g, wq in zip(G[:, sl], w):
+            Vw = (wq * fem.vol[sl])[:, None, None, None, None]
+            K += Vw * (fem.lam * np.einsum("eai,ebj->eaibj", g, g)
+                       + fem.mu * np.einsum("eak,ebk,ij->eaibj", g, g, eye)
+                       + fem.mu * np.einsum("eaj,ebi->eaibj", g, g))
+        dof = (fem.elems[sl][:, :, None] * d + np.arange(d)).reshape(len(K), -1)
+        rows.append(np.repeat(dof, n * d, axis=1).ravel())
+        cols.append(np.tile(dof, (1, n * d)).ravel())
+        vals.append(K.reshape(len(K), -1).ravel())
+    size = len(fem.rest) * d
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+
+
+def rigid_modes(x: np.ndarray) -> np.ndarray:
+    """(nv dim, 6 | 3) translations and infinitesimal rotations about the centroid."""
+    nv, d = x.shape
+    r = x - x.mean(axis=0)
+    if d == 2:
+        return np.stack([np.tile([1.0, 0.0], nv), np.tile([0.0, 1.0], nv), np.c_[-r[:, 1], r[:, 0]].ravel()], 1)
+    modes = [np.tile(e, nv) for e in np.eye(3)]
+    for e in np.eye(3):
+        modes.append(np.cross(e, r).ravel())
+    return np.stack(modes, 1)
+
+
+def static_displacement(fem: FemModel, f: np.ndarray) -> np.ndarray:
+    """u (nv, dim) of the free body under nodal forces f (nv, dim), with what net force and
+    torque f has balanced by the rigid acceleration it causes (mass-weighted)."""
+    d = fem.dim
+    Rm = rigid_modes(fem.rest)
+    m = np.repeat(fem.mass, d)
+    MR = m[:, None] * Rm
+    fb = f.ravel() - MR @ np.linalg.solve(Rm.T @ MR, Rm.T @ f.ravel())
+    # hold the rigid motions: node a fully, b in the directions not along a-b, c in the normal
+    x = fem.rest
+    a = int(np.argmin(x[:, 0]))
+    b = int(np.argmax(np.linalg.norm(x - x[a], axis=1)))
+    fixed = [a * d + k for k in range(d)]
+    axis = int(np.argmax(np.abs(x[b] - x[a])))
+    fixed += [b * d + k for k in range(d) if k != axis]
+    if d == 3:
+        ab = (x[b] - x[a]) / np.linalg.norm(x[b] - x[a])
+        off = np.linalg.norm(np.cross(x - x[a], ab), axis=1)
+        c = int(np.argmax(off))
+        n = np.cross(ab, x[c] - x[a])
+        fixed.append(c * d + int(np.argmax(np.abs(n))))
+    free = np.setdiff1d(np.arange(len(fb)), fixed)
+    K = stiffness(fem)
+    u = np.zeros(len(fb))
+    u[free] = spla.spsolve(K[free][:, free].tocsc(), fb[free])
+    u = u - Rm @ np.linalg.lstsq(Rm, u, rcond=None)[0]   # the rigid part is arbitrary: drop it
+    return u.reshape(-1, d)
+
+
+def fixed_load(drone, gravity: float, load: float) -> np.ndarray:
+    """Nodal forces (nv, dim) of the module's load."""
+    fem, rot = drone.fem, drone.rotors
+    u = rest_hover_thrust(drone, gravity) + load * outer_rotors(drone)
+    f = np.zeros_like(fem.rest)
+    f[:, 1] -= fem.mass * gravity
+    from sdexp.sim.drone import face_normals
+    for r in range(rot.count):
+        n = face_normals(fem.rest, rot.faces[rot.face_ptr[r]:rot.face_ptr[r + 1], :fem.dim]).sum(0)
+        n /= np.linalg.norm(n)
+        verts = rot.verts[rot.vert_ptr[r]:rot.vert_ptr[r + 1]]
+        np.add.at(f, verts, u[r] * rot.weights[rot.vert_ptr[r]:rot.vert_ptr[r + 1], None] * n)
+    return f
+
+
+def static_response(drone, gravity: float = 9.81, load: float = 2.0) -> dict:
+    """Under the fixed load, static and linear: ``bend``, the RMS bend (deg) of the peripheral
+    IMUs as the sensor pipeline reads it, and ``compliance``, the load's work f . u (J): the
+    stiffness of the whole body, which a conforming mesh underestimates (too stiff) and
+    approaches from below. The bend is what the controller sees, but it is read from the few
+    surface nodes inside each IMU patch; where it is below a degree (the compact 2D drones)
+    which nodes fall inside moves it by more than the elements do."""
+    f = fixed_load(drone, gravity, load)
+    u = static_displacement(drone.fem, f)
+    out = {"compliance": float(np.sum(f * u)), "bend": float("nan")}
+    if drone.layout.n_s:
+        eps = 1e-4 * np.ptp(drone.fem.rest, axis=0).max() / max(np.abs(u).max(), 1e-300)
+        x = drone.fem.rest + eps * u
+        s = decompose(read_imus(0.0, x, np.zeros_like(x), drone.imus), drone.layout).s / eps
+        out["bend"] = float(np.rad2deg(np.sqrt(np.mean(np.square(s)))))
+    return out
+
+
+def element_size(drone) -> float:
+    fem = drone.fem
+    return float((fem.vol.sum() / fem.n_elems) ** (1.0 / fem.dim))
+
+
+def richardson(h, b) -> tuple[float, float, float]:
+    """(b_inf, order p, uncertainty) from three (h, b), coarse to fine."""
+    h, b = np.asarray(h, float), np.asarray(b, float)
+    d1, d2 = b[0] - b[1], b[1] - b[2]
+    if not (d1 * d2 > 0 and abs(d2) < abs(d1) and h[0] > h[1] > h[2]):
+        return float(b[2]), float("nan"), float(abs(d2))
+
+    def gap(p):  # (h1^p - h2^p) / (h2^p - h3^p) against the observed ratio
+        return (h[0] ** p - h[1] ** p) / (h[1] ** p - h[2] ** p) - d1 / d2
+    lo, hi = 0.1, 8.0
+    if gap(lo) * gap(hi) > 0:
+        return float(b[2]), float("nan"), float(abs(d2))
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if gap(lo) * gap(mid) > 0 else (lo, mid)
+    p = 0.5 * (lo + hi)
+    C = d2 / (h[1] ** p - h[2] ** p)
+    b_inf = b[2] - C * h[2] ** p
+    return float(b_inf), float(p), float(abs(b_inf - b[2]))
+
+
+def refined(mesh, r: float) -> dict:
+    """The mesh settings r times finer: edge_length / r, and layers x r (rounded up) for a mesh
+    extruded through the thickness."""
+    out = {"edge_length": float(mesh.edge_length) / r}
+    if mesh.get("layers", 0):
+        out["layers"] = int(np.ceil(mesh.layers * r - 1e-9))
+    return out
+
+
+def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravity: float = 9.81,
+                       load: float = 2.0, element: str = "quadratic") -> dict:
+    """static_response of ``element`` meshes r times finer (``refined``) for r in ``refine`` and
+    the Richardson extrapolate of each quantity (``<q>_converged``, ``<q>_order``,
+    ``<q>_uncertainty``); cached (fine 3D meshes take minutes to make)."""
+    from omegaconf import OmegaConf
+
+    payload = {"drone": drone_key(OmegaConf.to_container(drone_cfg, resolve=True)), "refine": list(refine),
+               "gravity": gravity, "load": load, "element": element}
+
+    def make():
+        rows = []
+        for r in refine:
+            cfg = OmegaConf.merge(drone_cfg, {"mesh": refined(drone_cfg.mesh, r)})
+            drone = build_drone(cfg, cache_dir, element)
+            res = static_response(drone, gravity, load)
+            rows.append([element_size(drone), drone.fem.n_elems, res["bend"], res["compliance"]])
+        h, n, bend, compliance = np.array(rows).T
+        return {"h": h, "elements": n, "bend": bend, "compliance": compliance}
+
+    a = cached_arrays(cache_dir, key_of("response", FORMAT, payload), make)
+    out = {k: a[k].tolist() for k in a}
+    for q in ("bend", "compliance"):
+        value, order, unc = richardson(a["h"], a[q])
+        out.update({f"{q}_converged": value, f"{q}_order": order, f"{q}_uncertainty": unc})
+    return out

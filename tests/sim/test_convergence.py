@@ -1,0 +1,53 @@
+"""The accuracy yardstick of bench_sim and validate_fem (sdexp.eval.convergence): the assembled
+stiffness is the simulator's force linearised, the free-body static solve matches beam theory,
+Richardson recovers a known limit."""
+import numpy as np
+import pytest
+
+from sdexp.eval.convergence import richardson, static_displacement, stiffness
+from sdexp.sim.fem import build_fem, elastic_forces
+from sdexp.sim.quadratic import quadratic_mesh
+from sdexp.sim.structured import box_tets, box_tris
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("order", [1, 2])
+def test_stiffness_is_the_kernels_force_linearised(dim, order):
+    pts, el = box_tets((3, 2, 2), (1.0, 0.4, 0.6)) if dim == 3 else box_tris((4, 2), (1.0, 0.4))
+    if order == 2:
+        pts, el = quadratic_mesh(pts, el)
+    fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
+    K = stiffness(fem)
+    assert abs(K - K.T).max() < 1e-9 * abs(K).max()
+    u = 1e-7 * np.random.default_rng(0).standard_normal(fem.rest.shape)
+    f = elastic_forces(fem, fem.rest + u)
+    np.testing.assert_allclose(K @ u.ravel(), -f.ravel(), atol=1e-4 * np.abs(f).max())
+
+
+@pytest.mark.parametrize("order,layers,tol", [(2, 1, 0.002), (1, 8, 0.05)])
+def test_free_beam_under_balanced_load_matches_beam_theory(order, layers, tol):
+    """A free 8 m plane-strain strip, its weight held by upward forces at its ends: the
+    midspan sags 5 w L^4 / (384 EI) relative to the ends, as a simply supported beam."""
+    L, T, E, nu = 8.0, 0.1, 6000.0, 0.3
+    pts, el = box_tris((int(round(L * layers / T)), layers), (L, T), (-L / 2, -T / 2))
+    if order == 2:
+        pts, el = quadratic_mesh(pts, el)
+    fem = build_fem(pts, el, 1.0, E, nu)
+    f = np.zeros_like(fem.rest)
+    f[:, 1] -= fem.mass * 9.81
+    for end in (-L / 2, L / 2):
+        ids = np.flatnonzero(np.isclose(fem.rest[:, 0], end))
+        f[ids, 1] += 9.81 / 2 / len(ids)
+    u = static_displacement(fem, f)
+    x = fem.rest[:, 0]
+    sag = u[np.isclose(np.abs(x), L / 2), 1].mean() - u[np.isclose(x, 0.0), 1].mean()
+    EI = E / (1 - nu ** 2) * T ** 3 / 12
+    assert sag == pytest.approx(5 * (9.81 / L) * L ** 4 / (384 * EI), rel=tol)
+
+
+def test_richardson_recovers_a_known_limit_and_flags_an_unconverged_series():
+    h = np.array([0.4, 0.25, 0.1])
+    value, order, unc = richardson(h, 3.0 - 2.0 * h ** 2)
+    assert value == pytest.approx(3.0, rel=1e-9) and order == pytest.approx(2.0, rel=1e-6) and unc > 0
+    value, order, unc = richardson(h, np.array([1.0, 1.2, 1.1]))   # not monotone: finest, its spread
+    assert value == 1.1 and np.isnan(order) and unc == pytest.approx(0.1)
