@@ -74,7 +74,7 @@ class SimConfig:
     max_speed: float = 100.0             # m/s; faster vertices count as a blow-up
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
     threads: int = 0                     # FEM kernel threads; 0 = auto (2 for big meshes)
-    element: str = "linear"              # linear (4-node tets / 3-node triangles) | quadratic (10 / 6 nodes)
+    element: str = "quadratic"           # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.effects), each {name|_target_, params}
 
 

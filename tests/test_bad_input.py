@@ -221,15 +221,22 @@ def test_only_one_of_two_concurrent_claims_wins(tmp_path):
 
 
 def _try_claim_and_hold(folder):
+    import os
     import time
     from pathlib import Path
     from sdexp.eval.experiments import claim
+    marks = Path(folder).parent / (Path(folder).name + "-tried")
+    marks.mkdir(exist_ok=True)
     try:
         claim(Path(folder))
+        result = "held"
     except UserError:
-        return "error"
-    time.sleep(1.0)   # hold it while the other process tries
-    return "held"
+        result = "error"
+    (marks / str(os.getpid())).touch()
+    deadline = time.monotonic() + 30.0
+    while result == "held" and len(list(marks.iterdir())) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)   # hold the claim until the other process has tried (a loaded machine starts it late)
+    return result
 
 
 def test_an_output_folder_that_is_a_file_is_a_user_error(tmp_path):

