@@ -127,13 +127,15 @@ def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
     assert not (tmp_path / "bench_sim.csv").exists()  # skipped: metrics.json was there
 
 
-def test_validate_fem_runs_shrunk_and_matches_the_stored_reference(tmp_path):
+def test_validate_fem_runs_shrunk_and_matches_the_stored_reference(tmp_path, cache_dir):
     """The structured-mesh cases are deterministic: a shrunk run reproduces the committed
     full run's numbers for the cases it shares (results/validate_fem/metrics.json)."""
     cfg = make_cfg("experiment=validate_fem", "experiment.params.layers.linear={2d: [1, 2], 3d: [1]}",
-                   "experiment.params.layers.quadratic={2d: [1], 3d: [1]}", "experiment.params.drone_edge_length=null")
+                   "experiment.params.layers.quadratic={2d: [1], 3d: [1]}", "experiment.params.drone_edge_length=null",
+                   "experiment.params.drones=[rod]", f"cache_dir={cache_dir}")
     metrics = run_experiment(cfg, tmp_path)
-    assert (tmp_path / "cantilever.png").exists()
+    assert (tmp_path / "cantilever.png").exists() and (tmp_path / "drones.png").exists()
+    assert abs(metrics["rod_quadratic_compliance_error"]) < 0.05 and metrics["rod_linear_compliance_error"] < -0.2
     reference = json.loads((CONF_DIR.parent / "results" / "validate_fem" / "metrics.json").read_text())
     for key in ("rigid_rise_error", "sag_error_linear_structured_2D_2layers", "freq_error_linear_structured_2D_2layers",
                 "sag_error_linear_structured_3D_1layers", "freq_error_linear_structured_3D_1layers",

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from sdexp.eval.convergence import converged_response, static_response
+from sdexp.eval.convergence import converged_response, response_errors
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
 
@@ -66,17 +66,6 @@ def stepping(drone, drone_cfg, sim) -> dict:
             "substeps_per_step": sim.n_sub}
 
 
-def accuracy(drone, reference: dict, gravity: float, load: float) -> dict:
-    """The drone's static response beside the converged one, as relative errors."""
-    res = static_response(drone, gravity, load)
-    out = {}
-    for q in ("bend", "compliance"):
-        ref = reference[f"{q}_converged"]
-        out.update({q: res[q], f"{q}_converged": ref, f"{q}_error": res[q] / ref - 1,
-                    f"{q}_reference_uncertainty": reference[f"{q}_uncertainty"] / abs(ref)})
-    return out
-
-
 def run(cfg, out_dir: Path) -> dict:
     from sdexp.eval.plots import bench_plot
     from tqdm import tqdm
@@ -93,7 +82,7 @@ def run(cfg, out_dir: Path) -> dict:
         for element in elements:
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
-                         **accuracy(drone, ref, gravity, load)})
+                         **response_errors(drone, ref, gravity, load)})
     for name in tqdm(names if p.resolution_factors else [], desc="bench_sim resolutions"):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
@@ -102,7 +91,7 @@ def run(cfg, out_dir: Path) -> dict:
             drone = build_drone(coarse, cfg.cache_dir, "quadratic")
             sim = Simulator(drone, cfg.sim, cfg.noise, 0)
             rows.append({"series": "resolution", **stepping(drone, coarse, sim), "factor": factor,
-                         **accuracy(drone, ref, gravity, load)})
+                         **response_errors(drone, ref, gravity, load)})
     scaling = p.get("scaling_drone")
     if scaling:
         base = cfg.drone if scaling == cfg.drone.name else load_drone_cfg(scaling)
@@ -112,7 +101,7 @@ def run(cfg, out_dir: Path) -> dict:
                 d = OmegaConf.merge(base, {"mesh": {"edge_length": float(edge)}})
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
-                             **accuracy(drone, ref, gravity, load)})
+                             **response_errors(drone, ref, gravity, load)})
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "bench_sim.csv", index=False)
     bench_plot(table, out_dir / "bench_sim.png")

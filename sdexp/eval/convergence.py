@@ -228,3 +228,15 @@ def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravit
         value, order, unc = richardson(a["h"], a[q])
         out.update({f"{q}_converged": value, f"{q}_order": order, f"{q}_uncertainty": unc})
     return out
+
+
+def response_errors(drone, reference: dict, gravity: float = 9.81, load: float = 2.0) -> dict:
+    """The drone's static response beside the converged one (``converged_response``), as
+    relative errors (negative: too stiff), with the reference's own uncertainty."""
+    res = static_response(drone, gravity, load)
+    out = {}
+    for q in ("bend", "compliance"):
+        ref = reference[f"{q}_converged"]
+        out.update({q: res[q], f"{q}_converged": ref, f"{q}_error": res[q] / ref - 1,
+                    f"{q}_reference_uncertainty": reference[f"{q}_uncertainty"] / abs(ref)})
+    return out

@@ -88,3 +88,30 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def drone_accuracy_plot(table: pd.DataFrame, path: Path) -> None:
+    """Bend and compliance error of every drone's default mesh, linear beside quadratic."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    names = list(dict.fromkeys(table["drone"]))
+    y = np.arange(len(names))
+    for k, (element, color) in enumerate((("linear", "tab:orange"), ("quadratic", "tab:blue"))):
+        rows = table[table["element"] == element].set_index("drone").reindex(names)
+        for ax, q in zip(axes, ("bend", "compliance")):
+            ax.barh(y + (k - 0.5) * 0.4, 100 * rows[f"{q}_error"], height=0.4, color=color, label=element)
+            ax.errorbar(100 * rows[f"{q}_error"], y + (k - 0.5) * 0.4, xerr=100 * rows[f"{q}_reference_uncertainty"],
+                        fmt="none", ecolor="k", lw=0.8)
+    for ax, title in zip(axes, ("bend the IMUs read", "compliance (the whole body's stiffness)")):
+        ax.axvspan(-10, 10, color="g", alpha=0.1, label="+-10%")
+        ax.axvline(0, color="k", lw=0.8)
+        ax.set_xlabel("error against the converged body (%); bars: reference uncertainty")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+        ax.set_xlim(-100, 100)
+    axes[0].set_yticks(y, names)
+    axes[0].invert_yaxis()
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Every drone's default mesh under a fixed load: linear elements lock, quadratic ones bend")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -7,6 +7,8 @@
   few span the thickness; quadratic ones bend with one layer. The table shows how much, and
   how the errors shrink under refinement.
 * Stiff limit: a near-rigid plate under constant thrust follows the analytic rigid-body motion.
+* Every drone at its default mesh, both element types, against its converged body (the bend its
+  IMUs read and its compliance under a fixed load: sdexp.eval.convergence).
 """
 from __future__ import annotations
 
@@ -163,7 +165,8 @@ def stiff_plate_under_thrust(thrust: float = 6.0, seconds: float = 0.3, youngs_m
 # ------------------------------------------------------------------------------ runner
 
 def run(cfg, out_dir: Path) -> dict:
-    from sdexp.eval.plots import refinement_plot
+    from sdexp.eval.plots import drone_accuracy_plot, refinement_plot
+    from sdexp.sim.drone import drone_names
 
     p = dict(cfg.experiment.params)
     beam = Beam(**p.get("beam", {}))
@@ -191,15 +194,43 @@ def run(cfg, out_dir: Path) -> dict:
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "cantilever.csv", index=False)
     refinement_plot(table, out_dir / "cantilever.png")
+    drone_rows = drone_accuracy(cfg, list(p["drones"] or drone_names()), list(p["refine"]), float(p["bend_load"]))
+    if drone_rows:
+        drones = pd.DataFrame(drone_rows)
+        drones.to_csv(out_dir / "drones.csv", index=False)
+        drone_accuracy_plot(drones, out_dir / "drones.png")
     rigid = stiff_plate_under_thrust()
     pd.DataFrame([rigid]).to_csv(out_dir / "stiff_limit.csv", index=False)
     metrics = {"rigid_rise_error": rigid["rise"] / rigid["rise_rigid"] - 1}
+    for r in drone_rows:
+        metrics[f"{r['drone']}_{r['element']}_bend_error"] = r["bend_error"]
+        metrics[f"{r['drone']}_{r['element']}_compliance_error"] = r["compliance_error"]
     for r in rows:
         key = r["element"] + "_" + (f"pytetwild_edge{r['edge']:g}" if np.isnan(r["layers"])
                                     else f"{r['mesh'].replace(' ', '_')}_{int(r['layers'])}layers")
         metrics[f"sag_error_{key}"] = r["sag_error"]
         metrics[f"freq_error_{key}"] = r["freq_error"]
     return metrics
+
+
+def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> list[dict]:
+    """Every named drone at its default mesh, linear and quadratic, against the converged body
+    (sdexp.eval.convergence): the bend its IMUs read and its compliance under a fixed load."""
+    from sdexp.eval.bench_sim import load_drone_cfg
+    from sdexp.eval.convergence import converged_response, response_errors
+    from sdexp.sim.drone import build_drone
+
+    rows, gravity = [], float(cfg.sim.gravity)
+    for name in names:
+        d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
+        ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
+        for element in ("linear", "quadratic"):
+            drone = build_drone(d, cfg.cache_dir, element)
+            rows.append({"drone": name, "element": element, "elements": drone.fem.n_elems,
+                         **response_errors(drone, ref, gravity, load)})
+            print(f"  {name} {element}: bend error {rows[-1]['bend_error']:+.1%}, compliance error "
+                  f"{rows[-1]['compliance_error']:+.1%}")
+    return rows
 
 
 def _beam_surface(beam: Beam) -> tuple[np.ndarray, np.ndarray]:
