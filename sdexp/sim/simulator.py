@@ -19,6 +19,7 @@ import numba
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from sdexp.errors import UserError
 from sdexp.sim.drone import Drone
 from sdexp.sim.effects import build_effects, overrides
 from sdexp.sim.fem import stable_substep
@@ -64,6 +65,9 @@ class Simulator:
         self._sense = [e for e in self.effects if overrides(e, "sense")]
         fem, c, n = self.fem, self.cfg, self.noise
         dt_stable = stable_substep(fem, c.stability_safety)
+        if not (np.isfinite(dt_stable) and dt_stable > 0):
+            raise UserError(f"drone {drone.name}: no stable explicit substep for its mesh (largest eigenvalue of "
+                            f"M^-1 K not finite and positive); change drone.mesh (edge_length / layers)")
         dt_max = c.substep if c.substep is not None else dt_stable
         self.n_sub = int(np.ceil(c.control_dt / dt_max - 1e-9))
         self.dt = c.control_dt / self.n_sub

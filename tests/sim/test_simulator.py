@@ -124,3 +124,11 @@ def test_ground_stops_a_falling_drone_and_boxes_keep_vertices_out():
     inside = (np.abs(sim.x[:, 0]) < 0.3 - 1e-9) & (sim.x[:, 1] < -0.2 - 1e-9)
     assert not inside.any()
     assert np.abs(sim.v).max() < 0.5  # come to rest (draped over the box)
+
+
+def test_a_mesh_without_a_stable_substep_is_a_user_error_naming_the_mesh(plate, monkeypatch):
+    from sdexp.errors import UserError
+    import sdexp.sim.simulator as simulator
+    monkeypatch.setattr(simulator, "stable_substep", lambda fem, safety: float("nan"))
+    with pytest.raises(UserError, match=r"drone plate: no stable explicit substep.*drone\.mesh"):
+        Simulator(plate, sim_cfg(), noise_cfg())
