@@ -18,6 +18,24 @@ static int omp_get_thread_num(void) { return 0; }
 #endif
 #define B 32  /* elements per SIMD block */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
+/* POLAR_ITERATIONS warm-started polar iterations on F (scalars f00..f22), updating the
+ * quaternion (qw, qx, qy, qz) in place (a macro: scalar locals keep the SIMD loops vectorised). */
+#define POLAR_ITERATE(f00, f01, f02, f10, f11, f12, f20, f21, f22, qw, qx, qy, qz) \
+    for (int it_ = 0; it_ < POLAR_ITERATIONS; it_++) { \
+        double r00 = 1.0 - 2.0 * (qy * qy + qz * qz), r01 = 2.0 * (qx * qy - qw * qz), r02 = 2.0 * (qx * qz + qw * qy); \
+        double r10 = 2.0 * (qx * qy + qw * qz), r11 = 1.0 - 2.0 * (qx * qx + qz * qz), r12 = 2.0 * (qy * qz - qw * qx); \
+        double r20 = 2.0 * (qx * qz - qw * qy), r21 = 2.0 * (qy * qz + qw * qx), r22 = 1.0 - 2.0 * (qx * qx + qy * qy); \
+        double wx = (r10 * f20 - r20 * f10) + (r11 * f21 - r21 * f11) + (r12 * f22 - r22 * f12); \
+        double wy = (r20 * f00 - r00 * f20) + (r21 * f01 - r01 * f21) + (r22 * f02 - r02 * f22); \
+        double wz = (r00 * f10 - r10 * f00) + (r01 * f11 - r11 * f01) + (r02 * f12 - r12 * f02); \
+        double den = 0.5 / (fabs(r00 * f00 + r10 * f10 + r20 * f20 + r01 * f01 + r11 * f11 + r21 * f21 + r02 * f02 + r12 * f12 + r22 * f22) + 1e-9); \
+        double ax = wx * den, ay = wy * den, az = wz * den; \
+        double nw = qw - ax * qx - ay * qy - az * qz, nx = qx + ax * qw + ay * qz - az * qy; \
+        double ny = qy - ax * qz + ay * qw + az * qx, nz = qz + ax * qy - ay * qx + az * qw; \
+        double inv = 1.0 / sqrt(nw * nw + nx * nx + ny * ny + nz * nz); \
+        qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv; \
+    }
+
 /* Adds the nodal forces of elements [e0, e1) into f (nv, 3) and updates their warm-start
  * quaternions by POLAR_ITERATIONS polar iterations. Returns the inverted count.
  * Two layouts of the element data: rows (Bm (ne, 3, 3), vol (ne), q (ne, 4)), gathered into
@@ -63,20 +81,7 @@ static inline __attribute__((always_inline)) int forces_impl(const double *restr
             double det = f00 * (f11 * f22 - f12 * f21) - f01 * (f10 * f22 - f12 * f20) + f02 * (f10 * f21 - f11 * f20);
             inverted += (det <= 0.0) & (Vi != 0.0);  /* padding lanes have V = 0 */
             double qw = Qp[0 * B + i], qx = Qp[1 * B + i], qy = Qp[2 * B + i], qz = Qp[3 * B + i];
-            for (int it = 0; it < POLAR_ITERATIONS; it++) {  /* warm-started polar iteration */
-                double r00 = 1.0 - 2.0 * (qy * qy + qz * qz), r01 = 2.0 * (qx * qy - qw * qz), r02 = 2.0 * (qx * qz + qw * qy);
-                double r10 = 2.0 * (qx * qy + qw * qz), r11 = 1.0 - 2.0 * (qx * qx + qz * qz), r12 = 2.0 * (qy * qz - qw * qx);
-                double r20 = 2.0 * (qx * qz - qw * qy), r21 = 2.0 * (qy * qz + qw * qx), r22 = 1.0 - 2.0 * (qx * qx + qy * qy);
-                double wx = (r10 * f20 - r20 * f10) + (r11 * f21 - r21 * f11) + (r12 * f22 - r22 * f12);
-                double wy = (r20 * f00 - r00 * f20) + (r21 * f01 - r01 * f21) + (r22 * f02 - r02 * f22);
-                double wz = (r00 * f10 - r10 * f00) + (r01 * f11 - r11 * f01) + (r02 * f12 - r12 * f02);
-                double den = 0.5 / (fabs(r00 * f00 + r10 * f10 + r20 * f20 + r01 * f01 + r11 * f11 + r21 * f21 + r02 * f02 + r12 * f12 + r22 * f22) + 1e-9);
-                double ax = wx * den, ay = wy * den, az = wz * den;
-                double nw = qw - ax * qx - ay * qy - az * qz, nx = qx + ax * qw + ay * qz - az * qy;
-                double ny = qy - ax * qz + ay * qw + az * qx, nz = qz + ax * qy - ay * qx + az * qw;
-                double inv = 1.0 / sqrt(nw * nw + nx * nx + ny * ny + nz * nz);
-                qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv;
-            }
+            POLAR_ITERATE(f00, f01, f02, f10, f11, f12, f20, f21, f22, qw, qx, qy, qz);
             Qp[0 * B + i] = qw; Qp[1 * B + i] = qx; Qp[2 * B + i] = qy; Qp[3 * B + i] = qz;
             double r00 = 1.0 - 2.0 * (qy * qy + qz * qz), r01 = 2.0 * (qx * qy - qw * qz), r02 = 2.0 * (qx * qz + qw * qy);
             double r10 = 2.0 * (qx * qy + qw * qz), r11 = 1.0 - 2.0 * (qx * qx + qz * qz), r12 = 2.0 * (qy * qz - qw * qx);
@@ -150,24 +155,6 @@ int corotated_forces_3d(const double *x, const int32_t *el, const double *Bm, co
  * one warm-start quaternion per quadrature point (slot k at rows 4k..4k+3). */
 #define QA 0.5854101966249685
 #define QB 0.1381966011250105
-
-/* POLAR_ITERATIONS warm-started polar iterations on F (scalars f00..f22), updating the
- * quaternion (qw, qx, qy, qz) in place: forces_impl's loop, as a macro for scalar locals. */
-#define POLAR_ITERATE(f00, f01, f02, f10, f11, f12, f20, f21, f22, qw, qx, qy, qz) \
-    for (int it_ = 0; it_ < POLAR_ITERATIONS; it_++) { \
-        double r00 = 1.0 - 2.0 * (qy * qy + qz * qz), r01 = 2.0 * (qx * qy - qw * qz), r02 = 2.0 * (qx * qz + qw * qy); \
-        double r10 = 2.0 * (qx * qy + qw * qz), r11 = 1.0 - 2.0 * (qx * qx + qz * qz), r12 = 2.0 * (qy * qz - qw * qx); \
-        double r20 = 2.0 * (qx * qz - qw * qy), r21 = 2.0 * (qy * qz + qw * qx), r22 = 1.0 - 2.0 * (qx * qx + qy * qy); \
-        double wx = (r10 * f20 - r20 * f10) + (r11 * f21 - r21 * f11) + (r12 * f22 - r22 * f12); \
-        double wy = (r20 * f00 - r00 * f20) + (r21 * f01 - r01 * f21) + (r22 * f02 - r02 * f22); \
-        double wz = (r00 * f10 - r10 * f00) + (r01 * f11 - r11 * f01) + (r02 * f12 - r12 * f02); \
-        double den = 0.5 / (fabs(r00 * f00 + r10 * f10 + r20 * f20 + r01 * f01 + r11 * f11 + r21 * f21 + r02 * f02 + r12 * f12 + r22 * f22) + 1e-9); \
-        double ax = wx * den, ay = wy * den, az = wz * den; \
-        double nw = qw - ax * qx - ay * qy - az * qz, nx = qx + ax * qw + ay * qz - az * qy; \
-        double ny = qy - ax * qz + ay * qw + az * qx, nz = qz + ax * qy - ay * qx + az * qw; \
-        double inv = 1.0 / sqrt(nw * nw + nx * nx + ny * ny + nz * nz); \
-        qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv; \
-    }
 
 /* One quadrature point (barycentric L0..L3, literals at each call so the compiler folds them)
  * of a block of B tets: F from the effective corner positions (D: node offsets from node 0),
