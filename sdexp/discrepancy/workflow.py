@@ -174,9 +174,9 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
         rounds.append({"round": rnd + 1, "verdict": v, "ranking": _jsonable(ranking), "z_threshold": float(z),
                        "held_loss_nominal": float(np.mean(cur_held_w))})
+        change = f"-> {best.held_loss:.3f}" if best else "(no candidate accepted)"
         log(f"discrepancy round {rnd + 1}: {v} {best.name if best else ''} "
-            f"{[t.name for t in tie]} held loss {np.mean(cur_held_w):.3f} -> "
-            f"{best.held_loss if best else float('nan'):.3f}")
+            f"{[t.name for t in tie]} held loss {np.mean(cur_held_w):.3f} {change}")
         if best is None:
             break
         if len(passing) <= 1:

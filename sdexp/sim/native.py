@@ -1,6 +1,7 @@
 """The compiled kernels (kernels.c): built with the machine's C compiler on first use, like
 numba compiles on first use, and cached under a hash of the source, the flags and the CPU;
-written to a temporary name and renamed, so a killed build leaves nothing half-written.
+written to a temporary name and renamed, so a killed build leaves nothing half-written, and
+checked against the digest recorded at build time before it is loaded (a damaged one is rebuilt).
 
 Where no compiler works, the numba references (same arithmetic, about 3x slower) run instead
 and a warning says so.
@@ -59,10 +60,31 @@ def _build(target: Path) -> None:
     os.close(fd)
     try:
         subprocess.run([cc, *FLAGS, "-o", tmp, str(SOURCE), "-lm"], check=True, capture_output=True, text=True)
+        digest = _digest(Path(tmp))
         os.replace(tmp, target)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+    from sdexp.cache import atomic_write
+    atomic_write(_digest_path(target), lambda p: p.write_text(digest))
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _digest_path(library_path: Path) -> Path:
+    return library_path.with_suffix(".sha256")
+
+
+def _intact(path: Path) -> bool:
+    """The library is whole: its bytes hash to what the build recorded. A truncated or
+    overwritten shared library can kill the process with a bus error when loaded, so it is
+    checked before, not after."""
+    try:
+        return path.exists() and _digest_path(path).read_text().strip() == _digest(path)
+    except OSError:
+        return False
 
 
 def default_cache_dir() -> Path:
@@ -74,7 +96,7 @@ def library():
     """The compiled kernels.c, or None (with a warning) where it cannot be built."""
     path = _library_path(default_cache_dir())
     try:
-        if not path.exists():
+        if not _intact(path):   # missing, damaged, or built before the digest was recorded
             _build(path)
         lib = ctypes.CDLL(str(path))
     except (OSError, subprocess.CalledProcessError) as err:

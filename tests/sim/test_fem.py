@@ -257,3 +257,21 @@ def test_deformation_damping_stops_vibration_not_flight(block):
     # angular momentum: the polar iteration's drift, as in test_free_body_conserves_momentum
     assert results["deformation"][0] < 1e-9 and results["deformation"][1] < 0.05
     assert results["absolute"][0] > 0.9 and results["absolute"][1] > 0.9
+
+
+def test_a_damaged_compiled_kernel_is_rebuilt_not_loaded(tmp_path, monkeypatch):
+    """A truncated library would crash the process when loaded (bus error): the digest recorded
+    at build time catches it first and the library is built again."""
+    from sdexp.sim import native
+
+    monkeypatch.setenv("SDEXP_CACHE", str(tmp_path))
+    so = native._library_path(tmp_path)
+    native._build(so)                                   # built, not loaded: this process maps no copy
+    assert native._intact(so)
+    so.write_bytes(so.read_bytes()[:1000])              # truncated, as by a full disk
+    assert not native._intact(so)
+    native.library.cache_clear()
+    try:
+        assert native.library() is not None and native._intact(so)
+    finally:
+        native.library.cache_clear()
