@@ -363,3 +363,11 @@ def test_a_drone_override_that_no_benchmarked_drone_sees_is_an_error():
     with pytest.raises(UserError, match=r"drone\.youngs_modulus=3000 changes drone flower.*add drone=rod"):
         check_overrides_reach(make_cfg(*args), args)
     check_overrides_reach(make_cfg(*args, "drone=rod"), [*args, "drone=rod"])   # reaches the rod
+
+
+def test_an_unknown_design_param_is_an_error_before_anything_is_written(tmp_path):
+    from sdexp.eval.experiments import run_experiment
+    with pytest.raises(UserError, match="petal_widht"):
+        run_experiment(make_cfg("experiment=gallery", "experiment.params.drones=[flower]",
+                                "+drone.params.petal_widht=0.5"), tmp_path / "run")
+    assert not (tmp_path / "run").exists()

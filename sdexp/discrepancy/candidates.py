@@ -54,7 +54,7 @@ def library_candidates(drone, names=None) -> list[Candidate]:
             lambda th, o: [{"name": "rotor_reaction_torque", "k": float(th[0])}],
             lambda th, o: {"k": float(th[0])}),
         "rotor_drag": Candidate(
-            "rotor_drag", ["k"], a([0.1]), a([-1.0]), a([5.0]),
+            "rotor_drag", ["k"], a([0.1]), a([0.0]), a([5.0]),   # a drag never pushes: k >= 0
             lambda th, o: [{"name": "rotor_drag", "k": float(th[0])}],
             lambda th, o: {"k": float(th[0])}),
         "quadratic_drag": Candidate(

@@ -300,6 +300,8 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
     validate(cfg)
     check_params(cfg)
     check_overrides_reach(cfg, overrides)
+    from sdexp.sim.drone import make_shape
+    make_shape(cfg.drone)   # the design's params (an unknown drone.params key) before anything is written
     out_dir = Path(out_dir)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     try:
