@@ -132,7 +132,7 @@ def test_imus_follow_placement_rule(drone):
 def test_mesh(drone):
     _, _, shape, points, tris = drone
     assert points.dtype == np.float64 and tris.dtype == np.int32
-    assert 100 <= len(tris) <= 1500
+    assert 50 <= len(tris) <= 1500
     areas = _tri_areas(points, tris)
     assert np.all(areas > 0)
     polygon = sum(_signed_area(shape.vertices[r]) for r in _rings(shape.faces))
