@@ -148,3 +148,14 @@ def test_gallery_runs_shrunk(tmp_path, cache_dir):
     cfg = make_cfg("experiment=gallery", "experiment.params.drones=[rod,bunny]", f"cache_dir={cache_dir}")
     metrics = run_experiment(cfg, tmp_path)
     assert metrics["rod_elements"] > 0 and (tmp_path / "drones.png").exists()
+
+
+def test_bench_sim_reports_a_blow_up_in_its_table(cache_dir):
+    """A timing that blows up (here: any vertex faster than 0.05 m/s counts as a runaway) is
+    counted and named in the row, not reset silently."""
+    from sdexp.eval.bench_sim import time_drone
+    from sdexp.sim.drone import build_drone
+    cfg = make_cfg("drone=rod", "sim.max_speed=0.05", f"cache_dir={cache_dir}")
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
+    row = time_drone(drone, cfg.drone, cfg, seconds=0.25, seed=0)
+    assert row["blowups"] > 0 and "runaway_speed" in row["blowup_detail"]
