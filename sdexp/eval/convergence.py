@@ -32,16 +32,17 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from sdexp.cache import cached_arrays, key_of
+from sdexp.errors import UserError
 from sdexp.sim.drone import build_drone, drone_key
 from sdexp.sim.fem import FemModel
-from sdexp.sim.geometry import rest_hover_thrust
+from sdexp.sim.geometry import rest_hover_thrust, rigid_body
 from sdexp.sim.quadratic import EDGES_2D, EDGES_3D, QUAD_2D, QUAD_3D
 from sdexp.sim.sensors import decompose, read_imus
 from sdexp.sim.statics import outer_rotors
 
 FORMAT = 5
-DIRECT_MAX_DOFS = 500_000  # above: algebraic multigrid (pyamg) instead of a sparse direct solve
-                           # (the leaf's finest reference, 251k DOFs: 6 min direct; AMG stalls on its thin plate)
+DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
+                           # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)
 
 
 def shape_gradients(fem: FemModel) -> tuple[np.ndarray, np.ndarray]:
@@ -120,15 +121,10 @@ def static_displacement(fem: FemModel, f: np.ndarray) -> np.ndarray:
     free = np.setdiff1d(np.arange(len(fb)), fixed)
     K = stiffness(fem)[free][:, free].tocsr()
     u = np.zeros(len(fb))
-    if len(free) <= DIRECT_MAX_DOFS:
-        u[free] = spla.spsolve(K.tocsc(), fb[free])
-    else:   # a direct solve of still finer meshes fills 10+ GB; smoothed aggregation
-        import pyamg   # with the rigid motions as near-null space, preconditioning CG
-        ml = pyamg.smoothed_aggregation_solver(K, B=Rm[free], symmetry="symmetric")
-        residuals = []
-        u[free] = ml.solve(fb[free], tol=1e-10, accel="cg", maxiter=2000, residuals=residuals)
-        if residuals[-1] > 1e-8 * residuals[0]:
-            raise RuntimeError(f"elasticity solve did not converge ({residuals[-1] / residuals[0]:.1e})")
+    if len(free) > DIRECT_MAX_DOFS:
+        raise UserError(f"a reference mesh of {len(free)} unknowns is beyond the direct solve's "
+                        f"{DIRECT_MAX_DOFS}: choose smaller experiment.params.refine factors")
+    u[free] = spla.spsolve(K.tocsc(), fb[free])
     u = u - Rm @ np.linalg.lstsq(Rm, u, rcond=None)[0]   # the rigid part is arbitrary: drop it
     return u.reshape(-1, d)
 
@@ -139,20 +135,18 @@ def fixed_load(drone, gravity: float, load: float) -> np.ndarray:
     u = rest_hover_thrust(drone, gravity) + load * outer_rotors(drone)
     f = np.zeros_like(fem.rest)
     f[:, 1] -= fem.mass * gravity
-    from sdexp.sim.drone import face_normals
+    _, _, _, _, dirs = rigid_body(fem.rest, fem.mass, rot, np.eye(fem.dim))   # the patches' rest normals
     for r in range(rot.count):
-        n = face_normals(fem.rest, rot.faces[rot.face_ptr[r]:rot.face_ptr[r + 1], :fem.dim]).sum(0)
-        n /= np.linalg.norm(n)
-        verts = rot.verts[rot.vert_ptr[r]:rot.vert_ptr[r + 1]]
-        np.add.at(f, verts, u[r] * rot.weights[rot.vert_ptr[r]:rot.vert_ptr[r + 1], None] * n)
+        k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
+        np.add.at(f, rot.verts[k], u[r] * rot.weights[k, None] * dirs[r])
     return f
 
 
 def static_response(drone, gravity: float = 9.81, load: float = 2.0) -> dict:
     """Under the fixed load, static and linear: ``bend``, the RMS bend (deg) of the peripheral
     IMUs as the sensor pipeline reads it, and ``compliance``, the load's work f . u (J): the
-    stiffness of the whole body, which a conforming mesh underestimates (too stiff) and
-    approaches from below. The bend is what the controller sees, but it is read from the few
+    stiffness of the whole body (for one load a conforming mesh underestimates it, too stiff;
+    here the load too moves a little with the mesh, through the patches). The bend is what the controller sees, but it is read from the few
     surface nodes inside each IMU patch; where it is below a degree (the compact 2D drones)
     which nodes fall inside moves it by more than the elements do."""
     f = fixed_load(drone, gravity, load)
