@@ -4,18 +4,35 @@ An entry's key is a hash of everything that produced it plus a format version, s
 of config or of the code's format reads as a miss, never as a stale hit. Entries are written
 to a temporary name in the same folder and renamed, so a killed run never leaves a
 half-written entry behind.
+
+Concurrent jobs (a sweep's parallel jobs, several Slurm jobs on one shared cache) that need the
+same entry build it once: the builder holds an exclusive lock (:func:`build_lock`, ``flock`` on
+``<cache>/.locks/<entry>.lock``) while it checks, builds and writes; the others wait, then read
+what it wrote. The kernel releases the lock when its holder ends, however it ends, so a killed
+builder blocks nobody: the next process takes the lock, removes the killed one's temporary
+files and builds the entry itself.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import os
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+
+try:
+    import fcntl
+except ImportError:   # not a POSIX system: no locking (one job at a time)
+    fcntl = None
+
+log = logging.getLogger(__name__)
+
+LOCK_DIR = ".locks"
 
 
 def key_of(kind: str, version: int, payload: Any) -> str:
@@ -36,32 +53,76 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
             os.unlink(tmp)
 
 
-def cached_arrays(cache_dir: str | Path, key: str, make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Load the arrays stored under ``key``, or make, store and return them. An entry that cannot
-    be read back whole is made again."""
-    path = Path(cache_dir).expanduser() / f"{key}.npz"
-    if path.exists():
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-            if arrays:
-                return arrays
-            reason = "it holds no arrays"
-        except Exception as err:   # noqa: BLE001 - truncated, overwritten, not a zip: any damage
-            reason = f"{type(err).__name__}: {err}"
-        # a damaged entry (a disk filled mid-copy, a file edited by hand): made again, not a traceback
-        print(f"sdexp: cache entry {path} is damaged ({reason}); rebuilding it", file=sys.stderr)
-        path.unlink(missing_ok=True)
-    arrays = make()
+def _unwritable(folder: Path, err: OSError):
+    from sdexp.errors import UserError
+    return UserError(f"cache_dir {folder} cannot be written ({err.strerror or err}): "
+                     f"choose a writable one with cache_dir=<folder> or SDEXP_CACHE")
 
-    def write(tmp: Path) -> None:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
 
+@contextlib.contextmanager
+def build_lock(path: str | Path):
+    """Hold the exclusive right to build the cache entry ``path`` (or folder) for the duration:
+    other processes asking for the same entry wait here. On entry, the temporary files a killed
+    builder of this entry left behind are removed (only their owner, now gone, wrote them)."""
+    path = Path(path).expanduser()
+    if fcntl is None:
+        yield
+        return
+    folder = path.parent / LOCK_DIR
     try:
-        atomic_write(path, write)
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / f"{path.name}.lock", os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as err:
-        from sdexp.errors import UserError
-        raise UserError(f"cache_dir {Path(cache_dir).expanduser()} cannot be written ({err.strerror or err}): "
-                        f"choose a writable one with cache_dir=<folder> or SDEXP_CACHE") from None
+        raise _unwritable(path.parent, err) from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info(f"sdexp: waiting for another process that builds {path.name}")
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        for stale in path.parent.glob(f".{path.name}.*.tmp"):
+            stale.unlink(missing_ok=True)
+        yield
+    finally:
+        os.close(fd)   # releases the lock
+
+
+def _read_arrays(path: Path) -> tuple[dict[str, np.ndarray] | None, str | None]:
+    """(arrays, None), (None, None) for a missing entry, or (None, why it is damaged)."""
+    if not path.exists():
+        return None, None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+        if arrays:
+            return arrays, None
+        return None, "it holds no arrays"
+    except Exception as err:   # noqa: BLE001 - truncated, overwritten, not a zip: any damage
+        return None, f"{type(err).__name__}: {err}"
+
+
+def cached_arrays(cache_dir: str | Path, key: str, make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Load the arrays stored under ``key``, or make, store and return them (once, whichever
+    processes ask at the same time). An entry that cannot be read back whole is made again."""
+    path = Path(cache_dir).expanduser() / f"{key}.npz"
+    arrays, _ = _read_arrays(path)
+    if arrays is not None:
+        return arrays
+    with build_lock(path):
+        arrays, damage = _read_arrays(path)   # another process may have built it meanwhile
+        if arrays is not None:
+            return arrays
+        if damage is not None:
+            # a damaged entry (a disk filled mid-copy, a file edited by hand): made again, not a traceback
+            log.warning(f"sdexp: cache entry {path} is damaged ({damage}); rebuilding it")
+        arrays = make()
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+
+        try:
+            atomic_write(path, write)
+        except OSError as err:
+            raise _unwritable(Path(cache_dir).expanduser(), err) from None
     return arrays

@@ -6,6 +6,7 @@ output folder that cannot be written), prints one line ``sdexp: error: ...`` and
 """
 from __future__ import annotations
 
+import logging
 import os
 import re
 import sys
@@ -24,6 +25,7 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 register()
 
 _started = False   # the task function was entered: errors after this are the run's, not Hydra's
+log = logging.getLogger("sdexp.cli")
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
@@ -32,16 +34,20 @@ def _main(cfg: DictConfig) -> None:
     from sdexp.eval.experiments import run_experiment
 
     _started = True
+    logging.captureWarnings(True)   # the library's warnings in the run's log file too
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         metrics = run_experiment(cfg, out_dir, overrides=OmegaConf.to_container(HydraConfig.get().overrides.task))
     except UserError as err:
         _discard_if_empty(out_dir)
+        if out_dir.exists():   # a run that had started: its log says why it stopped
+            from sdexp.log import to_log_files
+            to_log_files(f"sdexp: error: {err}")
         fail(str(err))
-    print(f"sdexp: {cfg.experiment.name} done -> {out_dir}")
+    log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}")
     for k, v in metrics.items():
         if not isinstance(v, (dict, list)):
-            print(f"  {k}: {v}")
+            log.info(f"  {k}: {v}")
 
 
 def _discard_if_empty(out_dir: Path) -> None:

@@ -216,6 +216,13 @@ class ExperimentConfig:
 class Config:
     seed: int = 0
     cache_dir: str = "${oc.env:SDEXP_CACHE,${oc.env:HOME}/.cache/sdexp}"
+    # CPU cores this run may use, its threads and worker processes together (sdexp.parallel.job_cores
+    # caps sim.threads, data.workers, model.threads and torch/BLAS/numba threads by it); null = auto:
+    # the cores this process may use (a Slurm job: its allocation) divided by the jobs that run beside
+    # it on this machine (hydra/launcher=joblib: its n_jobs; submitit_local: the sweep's jobs)
+    cores: Optional[int] = None
+    # the multirun folder that ``sdexp experiment=report`` aggregates (experiment.params.sweep_dir)
+    sweep_dir: Optional[str] = None
     drone: DroneConfig = field(default_factory=DroneConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
@@ -415,6 +422,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(s.gravity >= 0, "sim.gravity", s.gravity, ">= 0 m/s^2 (it points along -y)")
     _check(s.max_speed > 0, "sim.max_speed", s.max_speed, "> 0 m/s")
     _check(s.max_stretch > 1, "sim.max_stretch", s.max_stretch, "> 1 (x the rest extent)")
+    _check(cfg.cores is None or cfg.cores >= 1, "cores", cfg.cores, "null (auto) or >= 1")
     if not isinstance(cfg.seed, bool) and isinstance(cfg.seed, int) and not 0 <= cfg.seed < 2 ** 32:
         raise UserError(f"seed = {cfg.seed} is out of range: allowed 0 to {2 ** 32 - 1}")
     for i, b in enumerate(s.obstacles):

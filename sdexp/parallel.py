@@ -8,6 +8,7 @@ calling script must guard its top level with ``if __name__ == "__main__":``.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 from typing import Callable, Sequence
@@ -81,3 +82,134 @@ def _restore(saved: dict) -> None:
             os.environ.pop(k, None)
         else:
             os.environ[k] = v
+
+
+# ------------------------------------------------------------------ cores per job (sweeps)
+
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def available_cores() -> int:
+    """The cores this process may run on: a Slurm job's allocation (SLURM_CPUS_PER_TASK, else
+    its CPU affinity), a taskset's, or the machine's."""
+    slurm = os.environ.get("SLURM_CPUS_PER_TASK")
+    if slurm and slurm.isdigit() and int(slurm) > 0:
+        return int(slurm)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _sweep_size(hc) -> int | None:
+    """How many jobs the running sweep launches (from its multirun.yaml), or None if unknown."""
+    try:
+        from pathlib import Path
+
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+        from omegaconf import OmegaConf
+
+        saved = OmegaConf.load(Path(str(hc.sweep.dir)) / "multirun.yaml")
+        if OmegaConf.select(saved, "hydra.sweeper.params"):
+            return None   # sweeps declared in the config: not counted here
+        overrides = list(OmegaConf.select(saved, "hydra.overrides.task") or [])
+        parsed = OverridesParser.create().parse_overrides(overrides)
+        return sum(len(batch) for batch in BasicSweeper.split_arguments(parsed, None))
+    except Exception:   # noqa: BLE001 - any unreadable sweep: unknown
+        return None
+
+
+def concurrent_jobs(cores: int | None = None) -> int:
+    """How many of this sweep's jobs run at the same time on this machine: 1 for a single run,
+    Hydra's basic launcher (one job after another) and Slurm (each job has its own allocation);
+    hydra/launcher=joblib: its n_jobs (-1: all cores, -2: all but one, ...), at most the sweep's
+    jobs; submitit_local: all of the sweep's jobs at once."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+    except ImportError:
+        return 1
+    if not HydraConfig.initialized():
+        return 1
+    hc = HydraConfig.get()
+    if hc.mode != RunMode.MULTIRUN:
+        return 1
+    target = str(hc.launcher.get("_target_", ""))
+    cores = cores or available_cores()
+    total = _sweep_size(hc)
+    if "joblib" in target:
+        n = int(hc.launcher.get("n_jobs") or -1)
+        n = n if n > 0 else max(1, cores + 1 + n)
+    elif target.endswith("submitit_launcher.LocalLauncher"):
+        n = total or cores
+    else:
+        return 1
+    return max(1, min(n, total) if total else n)
+
+
+def job_cores(requested: int | None = None) -> tuple[int, int]:
+    """(cores this job may use, jobs running beside it, itself included): ``requested`` (the
+    config's ``cores``) when given, else the available cores shared evenly by the jobs."""
+    jobs = concurrent_jobs()
+    if requested:
+        return int(requested), jobs
+    return max(1, available_cores() // jobs), jobs
+
+
+def fit_to_cores(cfg, cores: int):
+    """A copy of ``cfg`` whose thread and worker counts fit in ``cores``: sim.threads (0 = auto,
+    which may take 2), data.workers, model.threads and an experiment's ``workers``. The data,
+    the nets and the caches' keys do not depend on these counts."""
+    import copy
+
+    out = copy.deepcopy(cfg)
+    changed = []
+
+    def cap(node, key, value, label):
+        old = node[key]
+        if old != value:
+            node[key] = value
+            changed.append(f"{label} {old} -> {value}")
+
+    if int(out.sim.threads) == 0:
+        if cores < 2:
+            cap(out.sim, "threads", 1, "sim.threads")
+    elif int(out.sim.threads) > cores:
+        cap(out.sim, "threads", cores, "sim.threads")
+    for node, key, label in ((out.data, "workers", "data.workers"), (out.model, "threads", "model.threads")):
+        if int(node[key]) > cores:
+            cap(node, key, cores, label)
+    params = out.experiment.params
+    if "workers" in params and isinstance(params.workers, int) and params.workers > cores:
+        cap(params, "workers", cores, "experiment.params.workers")
+    return out, changed
+
+
+@contextlib.contextmanager
+def limited_threads(cores: int):
+    """For the duration: this process's thread pools (torch, numba, BLAS/OpenMP through
+    threadpoolctl) and its children's (the environment they start with) at most ``cores``."""
+    import sys
+
+    from threadpoolctl import threadpool_limits
+
+    saved = {k: os.environ.get(k) for k in THREAD_ENV}
+    for var in THREAD_ENV:
+        current = saved[var]
+        if current is None or not current.isdigit() or int(current) > cores:
+            os.environ[var] = str(cores)
+    torch = sys.modules.get("torch")
+    torch_threads = torch.get_num_threads() if torch is not None else None
+    if torch is not None:
+        torch.set_num_threads(cores)
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        numba.set_num_threads(min(cores, numba.config.NUMBA_NUM_THREADS))
+    try:
+        with threadpool_limits(limits=cores):
+            yield
+    finally:
+        _restore(saved)
+        if torch is not None:
+            torch.set_num_threads(torch_threads)

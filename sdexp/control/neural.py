@@ -14,16 +14,19 @@ under a key over the networks' key, the policy config and the seed.
 from __future__ import annotations
 
 import copy
+import logging
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from sdexp.cache import atomic_write, key_of
+from sdexp.cache import atomic_write, build_lock, key_of
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.sim.sensors import State
+
+log = logging.getLogger(__name__)
 
 POLICY_VERSION = 1
 POLICY_KEYS = ("hidden", "layers", "iterations", "batch", "horizon", "lr", "goal_radius",
@@ -93,7 +96,7 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
     it = range(int(cfg["iterations"]))
     if progress:
         from tqdm import tqdm
-        it = tqdm(it, desc="train neural controller", unit="it", leave=False)
+        it = tqdm(it, desc="train neural controller", unit="it", leave=False, disable=None)
     for _ in it:
         x0 = np.zeros((B, dyn.n))
         half = B // 2
@@ -126,18 +129,31 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
 
 def load_or_train_policy(dyn, data_x, max_thrust, cfg, seed, nets_key, cache_dir, progress=True):
     path = Path(cache_dir).expanduser() / f"{policy_key(nets_key, cfg, seed)}.pt"
-    if path.exists():
-        try:
-            blob = torch.load(path, map_location="cpu", weights_only=True)
-            policy = Policy(*blob["args"])
-            policy.load_state_dict(blob["state"])
-            return policy.eval(), blob["losses"]
-        except Exception as err:
-            print(f"sdexp: cache entry {path.name} is unreadable ({type(err).__name__}), retraining")
-    policy, losses = train_policy(dyn, data_x, max_thrust, cfg, seed, progress)
-    blob = {"args": policy.args, "state": policy.state_dict(), "losses": losses}
-    atomic_write(path, lambda tmp: torch.save(blob, tmp))
+    loaded = _load_policy(path)
+    if loaded is not None:
+        return loaded
+    with build_lock(path):   # concurrent jobs that need this policy: one trains, the others wait
+        loaded = _load_policy(path, quiet=True)
+        if loaded is not None:
+            return loaded
+        policy, losses = train_policy(dyn, data_x, max_thrust, cfg, seed, progress)
+        blob = {"args": policy.args, "state": policy.state_dict(), "losses": losses}
+        atomic_write(path, lambda tmp: torch.save(blob, tmp))
     return policy, losses
+
+
+def _load_policy(path: Path, quiet: bool = False):
+    if not path.exists():
+        return None
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        policy = Policy(*blob["args"])
+        policy.load_state_dict(blob["state"])
+        return policy.eval(), blob["losses"]
+    except Exception as err:
+        if not quiet:
+            log.warning(f"sdexp: cache entry {path.name} is unreadable ({type(err).__name__}), retraining")
+        return None
 
 
 class NeuralController:

@@ -10,6 +10,7 @@ parameter error, held-out gap reduction) and the wall time.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -19,6 +20,9 @@ from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write
 from sdexp.sim.effects import Effect, patch_means, rotor_normals
+
+log = logging.getLogger(__name__)
+
 
 # (moderate, strong) strength of each library effect; direction-like parts drawn per seed
 STRENGTHS = {
@@ -328,9 +332,9 @@ def run(cfg, out_dir: Path) -> dict:
 
     p = cfg.experiment.params
     n = None
-    bar = tqdm(total=n, desc="discrepancy_bench scenarios")
+    bar = tqdm(total=n, desc="discrepancy_bench scenarios", disable=None)
     metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, Path(out_dir), cfg.cache_dir,
                         int(cfg.seed), int(p.workers), progress=bar.update)
     bar.close()
-    print(json.dumps(metrics, indent=2))
+    log.info(json.dumps(metrics, indent=2))
     return metrics

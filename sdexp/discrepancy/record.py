@@ -17,6 +17,7 @@ air, with gains low enough for a soft body, and needs no learned model.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +26,9 @@ import numpy as np
 from sdexp.discrepancy.logs import meta_for, state_row, write_flight, write_meta
 from sdexp.errors import UserError
 from sdexp.sim.rotations import matrix_from_euler
+
+log = logging.getLogger(__name__)
+
 
 MANOEUVRES = ("hover", "steps", "random_holds", "ground_pass", "differential", "high_speed")
 
@@ -232,5 +236,5 @@ def run(cfg, out_dir: Path) -> dict:
                            list(r.manoeuvres), int(cfg.seed), float(r.height), float(r.ground),
                            float(r.amplitude))
     meta = json.loads((folder / "meta.json").read_text())
-    print(f"sdexp: wrote {len(paths)} flights to {folder}")
+    log.info(f"sdexp: wrote {len(paths)} flights to {folder}")
     return {"flights": len(paths), "logs": str(folder), "failures": len(meta["failures"])}

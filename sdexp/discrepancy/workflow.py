@@ -15,6 +15,7 @@ report.json holds the verdict, parameters with uncertainty, the ranking and the 
 from __future__ import annotations
 
 import json
+import logging
 import tempfile
 import time
 from dataclasses import asdict
@@ -33,6 +34,9 @@ from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.errors import UserError
 from sdexp.sim.drone import drone_key
+
+log = logging.getLogger(__name__)
+
 
 FLOOR_FORMAT = 2
 
@@ -305,7 +309,7 @@ def run(cfg, out_dir: Path) -> dict:
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     rep = run_workflow(drone, cfg.drone, cfg.sim, cfg.noise, q, q.measured, Path(out_dir), cfg.cache_dir,
                        int(cfg.seed))
-    print(json.dumps({k: rep[k] for k in ("verdict", "effects", "ties", "unexplained", "gap")}, indent=2))
+    log.info(json.dumps({k: rep[k] for k in ("verdict", "effects", "ties", "unexplained", "gap")}, indent=2))
     return {"verdict": rep["verdict"], "effects": [e["name"] for e in rep["effects"]],
             "gap_reduction": rep["gap"]["reduction"], "held_loss_before": rep["gap"]["held_loss_before"],
             "held_loss_after": rep["gap"]["held_loss_after"]}

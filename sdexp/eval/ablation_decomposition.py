@@ -43,6 +43,7 @@ their parameters together (``experiment.params.raw_hidden`` widens it).
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,8 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sdexp.model.training import DECOMPOSED, UNDECOMPOSED, design, train_models
+
+log = logging.getLogger(__name__)
 
 
 def _param_count(nets) -> int:
@@ -132,7 +135,7 @@ def run(cfg, out_dir: Path) -> dict:
                     f"{kind}_ratio_undecomposed_over_decomposed": r_final / d_final,
                     f"{kind}_decomposed_val_rel_l1_best": d_best, f"{kind}_undecomposed_val_rel_l1_best": r_best,
                     f"{kind}_ratio_best": r_best / d_best})
-    print(table.iloc[[0, len(table) // 2, -1]].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    log.info(table.iloc[[0, len(table) // 2, -1]].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     out.update({
         "decomposed_channels": int(sum(widths[s] for s in dec.nets)), "undecomposed_channels": int(widths["raw"]),
         "decomposed_parameters": _param_count(dec.nets), "undecomposed_parameters": _param_count(raw.nets),
@@ -152,6 +155,6 @@ def shared_channels(data) -> np.ndarray | None:
     cols = np.r_[np.arange(dim, dim + n_e), np.arange(dim)]
     raw = a["raw_dot_next"]
     if raw.shape[1] < dim + n_e or not np.array_equal(raw[:, cols], np.concatenate([a["e_dot_next"], a["p_dot_next"]], 1)):
-        print("sdexp: raw_dot_next does not start with (p_dot, e_dot): no shared-target comparison")
+        log.warning("sdexp: raw_dot_next does not start with (p_dot, e_dot): no shared-target comparison")
         return None
     return cols

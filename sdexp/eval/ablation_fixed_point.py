@@ -12,6 +12,7 @@ without / with relinearisation side by side, as the paper's figure).
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,8 @@ import pandas as pd
 from sdexp.control.fixed_point import find_fixed_point, pollute
 from sdexp.eval.controllers import ours
 from sdexp.eval.flights import Setup, flight_table
+
+log = logging.getLogger(__name__)
 
 
 def run(cfg, out_dir: Path) -> dict:
@@ -31,7 +34,7 @@ def run(cfg, out_dir: Path) -> dict:
     target = start.copy()
     target[0] += float(p.distance)
     x_star, u_star, residual = find_fixed_point(dyn, target, tmax, int(cfg.seed), int(p.trials), int(p.descent_steps))
-    print(f"sdexp: fixed point |f(x*, u*)| = {residual:.3g}, u* = {np.round(u_star, 3).tolist()}")
+    log.info(f"sdexp: fixed point |f(x*, u*)| = {residual:.3g}, u* = {np.round(u_star, 3).tolist()}")
     rng = np.random.default_rng(int(cfg.seed))
     rows, tables = [], {}
     for level in p.noise_levels:

@@ -7,6 +7,7 @@ relinearisation; the issue's targets are < 5 ms per relinearisation and < 0.2 ms
 Writes ``bench_control.csv`` (one row per quantity: median, mean, p90 in ms)."""
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -20,6 +21,8 @@ from sdexp.control.tasks import Task
 from sdexp.eval.controllers import build, ours
 from sdexp.eval.flights import Setup
 from sdexp.sim.sensors import State
+
+log = logging.getLogger(__name__)
 
 
 def _ms(samples: list[float]) -> dict:
@@ -83,7 +86,7 @@ def _run(cfg, out_dir: Path) -> dict:
             {"quantity": "geometry-updating LQR redesign (per step)", **_ms(redesign)}]
     table = pd.DataFrame(rows)
     table.to_csv(Path(out_dir) / "bench_control.csv", index=False)
-    print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    log.info(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     return {"relinearization_ms": rows[0]["median_ms"], "jacobians_ms": rows[1]["median_ms"],
             "riccati_ms": rows[2]["median_ms"], "control_step_ms": rows[3]["median_ms"],
             "geometry_redesign_ms": rows[4]["median_ms"], "state_size": dyn.n, "rotors": dyn.m,

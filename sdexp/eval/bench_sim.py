@@ -5,6 +5,7 @@ errors against the converged body (Richardson over three refined quadratic meshe
 printed and written, never asserted; a blow-up during a timing is counted in the CSV."""
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from omegaconf import OmegaConf
 from sdexp.eval.convergence import converged_response, response_errors
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
+
+log = logging.getLogger(__name__)
 
 
 def load_drone_cfg(name: str):
@@ -76,14 +79,14 @@ def run(cfg, out_dir: Path) -> dict:
     gravity, load = float(cfg.sim.gravity), float(p.bend_load)
     refine = list(p.refine)
     rows = []
-    for name in tqdm(names, desc="bench_sim drones"):
+    for name in tqdm(names, desc="bench_sim drones", disable=None):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for element in elements:
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
                          **response_errors(drone, ref, gravity, load)})
-    for name in tqdm(names if p.resolution_factors else [], desc="bench_sim resolutions"):
+    for name in tqdm(names if p.resolution_factors else [], desc="bench_sim resolutions", disable=None):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for factor in p.resolution_factors:
@@ -97,7 +100,8 @@ def run(cfg, out_dir: Path) -> dict:
         base = cfg.drone if scaling == cfg.drone.name else load_drone_cfg(scaling)
         ref = converged_response(base, cfg.cache_dir, refine, gravity, load)
         for element in elements:
-            for edge in tqdm(list(p.scaling_edges[element]), desc=f"bench_sim {scaling} {element}"):
+            for edge in tqdm(list(p.scaling_edges[element]), desc=f"bench_sim {scaling} {element}",
+                             disable=None):
                 d = OmegaConf.merge(base, {"mesh": {"edge_length": float(edge)}})
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
@@ -107,7 +111,7 @@ def run(cfg, out_dir: Path) -> dict:
     bench_plot(table, out_dir / "bench_sim.png")
     show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
             "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
-    print(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    log.info(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     out = {}
     for r in rows:
         if r["series"] == "drone":

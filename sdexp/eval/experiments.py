@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import json
+import logging
 import os
 import random
 import socket
@@ -18,6 +19,8 @@ from sdexp.cache import atomic_write
 from sdexp.config import ELEMENTS, validate
 from sdexp.errors import UserError
 
+log = logging.getLogger(__name__)
+
 # name -> "module:function"; each function is run(cfg, out_dir) -> dict of metrics
 RUNNERS = {
     "ablation_decomposition": "sdexp.eval.ablation_decomposition:run",
@@ -30,6 +33,7 @@ RUNNERS = {
     "hover_deform": "sdexp.eval.hover_deform:run",
     "model_test": "sdexp.eval.model_test:run",
     "record": "sdexp.discrepancy.record:run",
+    "report": "sdexp.eval.report:run",
     "nsweep": "sdexp.eval.nsweep:run",
     "obstacle": "sdexp.eval.obstacle:run",
     "sota": "sdexp.eval.sota:run",
@@ -251,8 +255,9 @@ def _flat(node: Any, prefix: str = "") -> dict:
     return {prefix[:-1]: node}
 
 
-# keys that say where a run looks things up, not what it computes
-NOT_COMPARED = ("cache_dir",)
+# keys that say where a run looks things up or how many cores it may use, not what it computes
+# (sweep_dir: what a report reads is compared as experiment.params.sweep_dir)
+NOT_COMPARED = ("cache_dir", "cores", "sweep_dir")
 
 
 def config_differences(saved: dict, current: dict) -> list[str]:
@@ -302,6 +307,10 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
     check_overrides_reach(cfg, overrides)
     from sdexp.sim.drone import make_shape
     make_shape(cfg.drone)   # the design's params (an unknown drone.params key) before anything is written
+    module, func = RUNNERS[name].split(":")
+    runner = importlib.import_module(module)
+    if hasattr(runner, "check"):
+        runner.check(cfg)   # the experiment's own input (a report's sweep folder) before anything is written
     out_dir = Path(out_dir)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     try:
@@ -314,7 +323,7 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
         done = out_dir / "metrics.json"
         check_same_config(out_dir, resolved, done.exists())
         if done.exists():
-            print(f"sdexp: {done} exists with the same config, skipping (delete it to rerun)")
+            log.info(f"sdexp: {done} exists with the same config, skipping (delete it to rerun)")
             try:
                 return json.loads(done.read_text())
             except (OSError, ValueError) as err:
@@ -328,8 +337,14 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
             raise UserError(f"cannot write the run's output folder {out_dir}: {err.strerror or err} "
                             f"(choose a writable one with hydra.run.dir=<folder>)") from None
         seed_everything(int(cfg.seed))
-        module, func = RUNNERS[name].split(":")
-        metrics = getattr(importlib.import_module(module), func)(cfg, out_dir)
+        from sdexp.parallel import fit_to_cores, job_cores, limited_threads
+        cores, jobs = job_cores(cfg.get("cores"))
+        run_cfg, changed = fit_to_cores(cfg, cores)
+        log.info(f"sdexp: {name} (seed {cfg.seed}) on {cores} core{'s' if cores > 1 else ''}"
+                 + (f", {jobs} jobs side by side" if jobs > 1 else "")
+                 + (f" ({', '.join(changed)})" if changed else "") + f" -> {out_dir}")
+        with limited_threads(cores):
+            metrics = getattr(runner, func)(run_cfg, out_dir)
         write_json(done, metrics)
         return metrics
     finally:

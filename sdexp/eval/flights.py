@@ -42,7 +42,7 @@ class Setup:
         if self.progress:
             from tqdm import tqdm
             bar = tqdm(total=int(round(task.seconds / sim.cfg.control_dt)), desc=f"fly {label or controller.name}",
-                       unit="step", leave=False)
+                       unit="step", leave=False, disable=None)
 
         def on_step():
             if bar is not None:

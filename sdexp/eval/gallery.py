@@ -19,7 +19,7 @@ def run(cfg, out_dir: Path) -> dict:
     rows = int(np.ceil(len(names) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.6 * rows), squeeze=False)
     table = []
-    for ax, name in zip(axes.ravel(), tqdm(names, desc="gallery")):
+    for ax, name in zip(axes.ravel(), tqdm(names, desc="gallery", disable=None)):
         d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
         drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
         x = drone.fem.rest

@@ -37,6 +37,7 @@ Training curves of the networks: ``training.csv`` and ``training.png``.
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -46,6 +47,9 @@ import torch
 
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
 from sdexp.model.training import DECOMPOSED, design, design_rows, history_table, loss_plot, train_models
+
+log = logging.getLogger(__name__)
+
 
 GROUPS = ("s", "e", "p")
 VEL = {"s": "s_dot", "e": "e_dot", "p": "p_dot"}
@@ -177,7 +181,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
             u = next(cmds)
             r = sim.step(u)
             if not sim.alive:
-                print(f"sdexp: test flight {attempt}: {sim.failure.reason} at {sim.failure.time:.2f} s, retrying")
+                log.info(f"sdexp: test flight {attempt}: {sim.failure.reason} at {sim.failure.time:.2f} s, retrying")
                 break
             us.append(u.copy())
             xs.append(decompose(r, drone.layout).x)
@@ -367,7 +371,7 @@ def run(cfg, out_dir: Path) -> dict:
         metrics[f"r2_mean_{VEL[g]}"] = float(grp["r2"].mean())
     metrics["r2_mean"] = float(table["r2"].mean())
     metrics["r2_no_change_mean"] = float(table["r2_no_change"].mean())
-    print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    log.info(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
 
     # (c) the learned input Jacobian against the simulator's (what the LQR relies on)
     jac = input_jacobian_check(cfg, dyn)
@@ -375,7 +379,7 @@ def run(cfg, out_dir: Path) -> dict:
     for r in jac.itertuples():
         metrics[f"input_jacobian_{r.block}_{r.steps}step_rel_error"] = r.rel_error
         metrics[f"input_jacobian_{r.block}_{r.steps}step_sign_agreement"] = r.sign_agreement
-    print(jac.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    log.info(jac.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
     # (b) rollout of the linearized model against a test flight
     seconds = float(p.get("rollout_seconds", 70.0))

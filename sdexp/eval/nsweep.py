@@ -4,6 +4,7 @@ Writes ``nsweep.csv`` (survival, final error, mean error over the last 5 s, thru
 ``nsweep.png`` (final error and survival against n; x, y, z over time per n)."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,8 @@ from omegaconf import OmegaConf
 
 from sdexp.eval.controllers import ours
 from sdexp.eval.flights import Setup, flight_table
+
+log = logging.getLogger(__name__)
 
 
 def run(cfg, out_dir: Path) -> dict:
@@ -26,7 +29,7 @@ def run(cfg, out_dir: Path) -> dict:
         flight, m = setup.fly(sim, ours(c, setup.dyn, setup.drone.max_thrust), task, f"n = {n}")
         tables[int(n)] = flight_table(flight, setup.dyn)
         rows.append({"n": int(n), "relinearization_hz": 1.0 / (int(n) * float(cfg.sim.control_dt)), **m})
-        print(f"sdexp: n = {n}: survived {m['survival_time']:.2f} s, final error {m['final_error']:.3f} m")
+        log.info(f"sdexp: n = {n}: survived {m['survival_time']:.2f} s, final error {m['final_error']:.3f} m")
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "nsweep.csv", index=False)
     _plot(table, tables, np.asarray(p.target, float), out_dir / "nsweep.png", cfg.drone.name)

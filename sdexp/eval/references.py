@@ -11,9 +11,13 @@ Regenerate the references after an intended change with
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import tempfile
 from pathlib import Path
+
+log = logging.getLogger(__name__)
+
 
 REFERENCE_DIR = Path(__file__).resolve().parents[2] / "results" / "reference"
 
@@ -83,8 +87,9 @@ def regenerate(experiments, cache_dir: str | None = None) -> None:
             metrics = run_experiment(cfg, Path(out))
         keep = {k: metrics[k] for k in CHECKS[name]}
         (REFERENCE_DIR / f"{name}.json").write_text(json.dumps(keep, indent=2, default=float) + "\n")
-        print(f"sdexp: wrote {REFERENCE_DIR / f'{name}.json'}")
+        log.info(f"sdexp: wrote {REFERENCE_DIR / f'{name}.json'}")
 
 
 if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     regenerate(sys.argv[1:] or list(REDUCED))

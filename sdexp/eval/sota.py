@@ -10,6 +10,7 @@ relinearisation (``bench_control`` measures the rest).
 """
 from __future__ import annotations
 
+import logging
 import textwrap
 import time
 from pathlib import Path
@@ -18,6 +19,9 @@ import numpy as np
 import pandas as pd
 
 from sdexp.eval.flights import Setup, flight_table, position_plot
+
+log = logging.getLogger(__name__)
+
 
 # The paper's table (Experiments, "SOTA Comparison"): survival time (s), final error (m), thrust usage (N)
 PAPER = {
@@ -60,8 +64,8 @@ def run(cfg, out_dir: Path) -> dict:
         out.update({f"{name}_{k}": v for k, v in m.items()})
         if name == "ours" and ctl.timings:
             out["ours_ms_per_relinearization"] = 1e3 * float(np.median(ctl.timings))
-        print(f"sdexp: {name}: survived {m['survival_time']:.2f} s ({m['failure'] or 'whole flight'}), "
-              f"final error {m['final_error']:.3f} m, thrust usage {m['thrust_usage']:.0f} N")
+        log.info(f"sdexp: {name}: survived {m['survival_time']:.2f} s ({m['failure'] or 'whole flight'}), "
+                 f"final error {m['final_error']:.3f} m, thrust usage {m['thrust_usage']:.0f} N")
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "sota.csv", index=False)
     position_plot(tables, titles, out_dir / "sota.png",

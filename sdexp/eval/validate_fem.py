@@ -12,6 +12,7 @@
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,9 @@ from sdexp.sim.fem import FemModel, build_fem, stable_substep
 from sdexp.sim.integrator import Body
 from sdexp.sim.quadratic import quadratic_mesh
 from sdexp.sim.structured import box_tets, box_tris
+
+log = logging.getLogger(__name__)
+
 
 EB_ROOT = 1.8751040687  # first root of cos(x) cosh(x) = -1
 
@@ -178,8 +182,8 @@ def run(cfg, out_dir: Path) -> dict:
                 res = cantilever(beam, pts, el, element=element)
                 rows.append({"element": element, "mesh": f"structured {dim}D", "layers": layers,
                              "edge": beam.thickness / layers, "thickness_over_edge": layers, **res})
-                print(f"  {element} {dim}D {layers} layers, {len(el)} elements: sag error "
-                      f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
+                log.info(f"  {element} {dim}D {layers} layers, {len(el)} elements: sag error "
+                         f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
     if p.get("drone_edge_length"):
         from sdexp.sim.tetmesh import tet_mesh
         edge = float(p["drone_edge_length"])
@@ -189,8 +193,8 @@ def run(cfg, out_dir: Path) -> dict:
             res = cantilever(beam, pts, el, element=element)
             rows.append({"element": element, "mesh": "pytetwild 3D", "layers": np.nan, "edge": edge,
                          "thickness_over_edge": beam.thickness / edge, **res})
-            print(f"  {element} pytetwild at edge {edge} m, {len(el)} tets: sag error "
-                  f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
+            log.info(f"  {element} pytetwild at edge {edge} m, {len(el)} tets: sag error "
+                     f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "cantilever.csv", index=False)
     refinement_plot(table, out_dir / "cantilever.png")
@@ -228,8 +232,8 @@ def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> l
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"drone": name, "element": element, "elements": drone.fem.n_elems,
                          **response_errors(drone, ref, gravity, load)})
-            print(f"  {name} {element}: bend error {rows[-1]['bend_error']:+.1%}, compliance error "
-                  f"{rows[-1]['compliance_error']:+.1%}")
+            log.info(f"  {name} {element}: bend error {rows[-1]['bend_error']:+.1%}, compliance error "
+                     f"{rows[-1]['compliance_error']:+.1%}")
     return rows
 
 

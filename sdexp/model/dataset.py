@@ -35,10 +35,10 @@ its output, bump DATA_FORMAT (or clear the cache).
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 import time
-import warnings
 import zipfile
 from collections import Counter
 from dataclasses import dataclass, field
@@ -47,10 +47,13 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from sdexp.cache import atomic_write, key_of
+from sdexp.cache import atomic_write, build_lock, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
 from sdexp.sim.drone import drone_key
+
+log = logging.getLogger(__name__)
+
 
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
@@ -188,6 +191,8 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     samples, chunk = int(spec["data"]["samples"]), spec["chunk_samples"]
     sizes = [min(chunk, samples - c * chunk) for c in range(math.ceil(samples / chunk))]
     infos: dict[int, dict] = {}
+    for stale in folder.glob(".*.tmp"):   # a killed generator's half-written chunks (the caller holds the lock)
+        stale.unlink(missing_ok=True)
     for c, n in enumerate(sizes):
         path = _chunk_path(folder, c)
         if path.exists():
@@ -299,9 +304,17 @@ def load_dataset(cfg, chunk_samples: int | None = None) -> Dataset:
             arrays, meta = _read_npz(final, {"format": DATA_FORMAT, "key": key, "samples": int(data.samples)})
             ds = Dataset(arrays, {**meta, "cached": True})
         except _Unusable as err:
-            warnings.warn(f"sdexp: dataset cache {final} is unusable ({err}); regenerating", stacklevel=2)
+            log.warning(f"sdexp: dataset cache {final} is unusable ({err}); regenerating")
     if ds is None:
-        ds = _generate(spec, key, final, int(data.workers))
+        with build_lock(final):   # concurrent jobs that need this data: one generates, the others wait
+            if final.exists():
+                try:
+                    arrays, meta = _read_npz(final, {"format": DATA_FORMAT, "key": key, "samples": int(data.samples)})
+                    ds = Dataset(arrays, {**meta, "cached": True})
+                except _Unusable:
+                    pass
+            if ds is None:
+                ds = _generate(spec, key, final, int(data.workers))
     train, val = ds.split(float(data.validation_fraction), int(cfg.seed))
     if len(train) < batch:
         raise UserError(f"data.samples = {data.samples} gives {len(train)} training transitions after "

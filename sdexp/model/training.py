@@ -40,6 +40,7 @@ read, is retrained and replaced (with a message), never used.
 from __future__ import annotations
 
 import hashlib
+import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -50,10 +51,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from sdexp.cache import atomic_write, key_of
+from sdexp.cache import atomic_write, build_lock, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
 from sdexp.model.networks import ResidualMLP
+
+log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 5   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key
 MODEL_KEYS = ("hidden", "blocks", "epochs", "batch_size", "lr", "lr_decay", "lr_step", "loss", "keep_best",
@@ -232,7 +235,8 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     keep_best = bool(model_cfg.keep_best)
     best_loss, best_state, best_epoch = float("inf"), None, epochs
     t0 = time.perf_counter()
-    bar = tqdm(range(1, epochs + 1), desc=f"train {name}", disable=not progress or report is not None, leave=False)
+    bar = tqdm(range(1, epochs + 1), desc=f"train {name}", disable=True if not progress or report is not None else None,
+               leave=False)
     for epoch in bar:
         net.train()
         perm = torch.randperm(len(X_tr), generator=gen)[: n_batches * bs]
@@ -304,14 +308,15 @@ def _save(path: Path, key: str, result: TrainedNets) -> None:
     atomic_write(path, lambda tmp: torch.save(blob, tmp))
 
 
-def _load(path: Path, key: str, specs) -> TrainedNets | None:
+def _load(path: Path, key: str, specs, quiet: bool = False) -> TrainedNets | None:
+    say = (lambda msg: None) if quiet else log.warning
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # truncated by hand, another torch's format, ...
-        print(f"sdexp: cache entry {path.name} is unreadable ({type(err).__name__}), retraining")
+        say(f"sdexp: cache entry {path.name} is unreadable ({type(err).__name__}), retraining")
         return None
     if not isinstance(blob, dict) or blob.get("version") != FORMAT_VERSION or blob.get("key") != key:
-        print(f"sdexp: cache entry {path.name} is from another format version, retraining")
+        say(f"sdexp: cache entry {path.name} is from another format version, retraining")
         return None
     nets = {n: ResidualMLP.from_saved(v["spec"], v["state"]) for n, v in blob["nets"].items()}
     history = {n: pd.DataFrame(h) for n, h in blob["history"].items()}
@@ -332,6 +337,17 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
         loaded = _load(path, key, specs)
         if loaded is not None:
             return loaded
+    if path is None:
+        return _train_models(data, model_cfg, seed, None, validation_fraction, specs, key, progress)
+    with build_lock(path):   # concurrent jobs that need these nets: one trains, the others wait
+        if path.exists():
+            loaded = _load(path, key, specs, quiet=True)
+            if loaded is not None:
+                return loaded
+        return _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress)
+
+
+def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress) -> TrainedNets:
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
     horizon = int(model_cfg.horizon)
@@ -344,7 +360,7 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
         ok_tr = np.isfinite(X_tr).all(1) & np.isfinite(Y_tr).all(1)
         ok_va = np.isfinite(X_va).all(1) & np.isfinite(Y_va).all(1)
         if not (ok_tr.all() and ok_va.all()):
-            print(f"sdexp: network {spec.name}: dropping {(~ok_tr).sum() + (~ok_va).sum()} non-finite transitions")
+            log.warning(f"sdexp: network {spec.name}: dropping {(~ok_tr).sum() + (~ok_va).sum()} non-finite transitions")
             X_tr, Y_tr, X_va, Y_va = X_tr[ok_tr], Y_tr[ok_tr], X_va[ok_va], Y_va[ok_va]
         jobs.append((X_tr, Y_tr, X_va, Y_va, base, _plain(model_cfg), int(seed) * 1000 + i, spec.name))
     t0 = time.perf_counter()
@@ -359,7 +375,7 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
         nets[name], history[name], seconds[name] = net, hist, sec
         if progress:
             kept = hist[hist["selected"]].iloc[0]
-            print(f"sdexp: trained {name} in {sec:.1f} s; kept epoch {int(kept['epoch'])}: validation L1 "
+            log.info(f"sdexp: trained {name} in {sec:.1f} s; kept epoch {int(kept['epoch'])}: validation L1 "
                   f"{kept['val_l1']:.4f} (normalised), {kept['val_rel_l1']:.4f} of copying the velocity")
     result = TrainedNets(nets, history, seconds, key, False, specs, skipped, wall)
     if path is not None:
@@ -392,7 +408,7 @@ def _train_parallel(jobs, epochs: int, progress: bool):
     from tqdm import tqdm
 
     names = ", ".join(job[-1] for job in jobs)
-    with tqdm(total=epochs * len(jobs), desc=f"train {names}", unit="epoch", disable=not progress,
+    with tqdm(total=epochs * len(jobs), desc=f"train {names}", unit="epoch", disable=None if progress else True,
               leave=False) as bar:
         results = run_spawned(_train_job, jobs, len(jobs), bar.update)
     return [(ResidualMLP.from_saved(spec, state), pd.DataFrame(hist), sec) for spec, state, hist, sec in results]
