@@ -3,9 +3,9 @@ default mesh and on three refinements of it, with the converged bend from Richar
 extrapolation (linear tets at the drones' default resolution bend about half as much as the
 material they model; quadratic ones should not).
 
-The load: every node's weight, the rest shape's hover thrust (geometry.rest_hover_thrust) and
-``load`` N more on each outer rotor (statics.outer_rotors), along each rotor patch's rest normal,
-spread as the simulator spreads it; the net force and torque this leaves are balanced by the
+The load: every node's weight, the design's hover thrust (geometry.hover_thrust at the design's
+rotor anchors and normals) and ``load`` N more on each outer rotor (statics.outer_rotors), along
+the design's rotor normals, spread over each patch as the simulator spreads it; the net force and torque this leaves are balanced by the
 rigid acceleration they cause, as in free flight (inertia relief, d'Alembert). The same for
 every drone (a two-rotor drone has no pattern free of net lift to push with).
 
@@ -35,12 +35,12 @@ from sdexp.cache import cached_arrays, key_of
 from sdexp.errors import UserError
 from sdexp.sim.drone import build_drone, drone_key
 from sdexp.sim.fem import FemModel
-from sdexp.sim.geometry import rest_hover_thrust, rigid_body
+from sdexp.sim.geometry import hover_thrust, rigid_body
 from sdexp.sim.quadratic import EDGES_2D, EDGES_3D, QUAD_2D, QUAD_3D
 from sdexp.sim.sensors import decompose, read_imus
 from sdexp.sim.statics import outer_rotors
 
-FORMAT = 5
+FORMAT = 6   # 6: the load from the design's rotor anchors and normals (fixed_load)
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
                            # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)
 
@@ -129,16 +129,26 @@ def static_displacement(fem: FemModel, f: np.ndarray) -> np.ndarray:
     return u.reshape(-1, d)
 
 
-def fixed_load(drone, gravity: float, load: float) -> np.ndarray:
-    """Nodal forces (nv, dim) of the module's load."""
+def load_thrusts(drone, gravity: float, load: float) -> np.ndarray:
+    """The rotor thrusts of the module's load (N), along ``drone.rotors.normals``."""
     fem, rot = drone.fem, drone.rotors
-    u = rest_hover_thrust(drone, gravity) + load * outer_rotors(drone)
+    mass, com, _, _, _ = rigid_body(fem.rest, fem.mass, rot, np.eye(fem.dim))
+    return hover_thrust(mass, rot.anchors - com, rot.normals, gravity) + load * outer_rotors(drone)
+
+
+def fixed_load(drone, gravity: float, load: float) -> np.ndarray:
+    """Nodal forces (nv, dim) of the module's load. The thrusts come from the design (its rotor
+    anchors and normals, not the mesh's patch normals) so that every mesh of a drone carries the
+    same load: hover_thrust's choice between thrust patterns turns on how far the rotors tilt,
+    and a patch normal a degree off on one mesh flipped the octopus's head rotor between 0 and
+    1.1 N (its compliance jumped 20% between neighbouring refinements)."""
+    fem, rot = drone.fem, drone.rotors
+    u = load_thrusts(drone, gravity, load)
     f = np.zeros_like(fem.rest)
     f[:, 1] -= fem.mass * gravity
-    _, _, _, _, dirs = rigid_body(fem.rest, fem.mass, rot, np.eye(fem.dim))   # the patches' rest normals
     for r in range(rot.count):
         k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
-        np.add.at(f, rot.verts[k], u[r] * rot.weights[k, None] * dirs[r])
+        np.add.at(f, rot.verts[k], u[r] * rot.weights[k, None] * rot.normals[r])
     return f
 
 

@@ -27,7 +27,9 @@ class RotorPatches:
     vert_ptr: np.ndarray
     verts: np.ndarray
     weights: np.ndarray
-    anchors: np.ndarray   # (m, dim) rest anchor points
+    anchors: np.ndarray   # (m, dim) rest anchor points of the design
+    normals: np.ndarray   # (m, dim) the design's unit thrust directions there (the mesh's patch
+                          # normals approach them; sdexp.eval.convergence loads along these)
 
     @property
     def count(self) -> int:
@@ -194,7 +196,9 @@ def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatch
         faces = np.c_[faces, faces[:, :1]]
     vert_ptr, verts = _csr(vert_lists)
     weights = np.concatenate([np.full(len(v), 1.0 / len(v)) for v in vert_lists])
-    return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), weights, np.asarray(anchors))
+    normals = np.asarray(normals, dtype=float)
+    return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), weights, np.asarray(anchors),
+                        normals / np.linalg.norm(normals, axis=1, keepdims=True))
 
 
 def build_drone(cfg, cache_dir: str, element: str) -> Drone:

@@ -41,7 +41,7 @@ def patches(points, boundary, specs):
     return RotorPatches(ptr(face_lists), faces.astype(np.int64), ptr(vert_lists),
                         np.concatenate(vert_lists).astype(np.int64),
                         np.concatenate([np.full(len(v), 1.0 / len(v)) for v in vert_lists]),
-                        np.array([a for a, _, _ in specs]))
+                        np.array([a for a, _, _ in specs]), np.array([n for _, n, _ in specs], dtype=float))
 
 
 def box3d(k):

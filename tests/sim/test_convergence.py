@@ -51,3 +51,20 @@ def test_richardson_recovers_a_known_limit_and_flags_an_unconverged_series():
     assert value == pytest.approx(3.0, rel=1e-9) and order == pytest.approx(2.0, rel=1e-6) and unc > 0
     value, order, unc = richardson(h, np.array([1.0, 1.2, 1.1]))   # not monotone: finest, its spread
     assert value == 1.1 and np.isnan(order) and unc == pytest.approx(0.1)
+
+
+def test_the_load_is_the_same_on_every_mesh_of_a_drone(tmp_path):
+    """The yardstick's thrusts come from the design's rotor normals: on the patch normals, the
+    octopus's head rotor carried 1.09 N on one mesh and 0 N on the next (hover_thrust then
+    traded it against a horizontal force the tilted patches made)."""
+    from omegaconf import OmegaConf
+
+    from sdexp.eval.bench_sim import load_drone_cfg
+    from sdexp.eval.convergence import load_thrusts
+    from sdexp.sim.drone import build_drone
+
+    cfg = load_drone_cfg("octopus")
+    thrusts = [load_thrusts(build_drone(OmegaConf.merge(cfg, {"mesh": {"edge_length": e, "layers": 1}}),
+                                        str(tmp_path), "quadratic"), 9.81, 2.0) for e in (0.5, 0.4)]
+    np.testing.assert_allclose(thrusts[0], thrusts[1], rtol=0.01)
+    assert thrusts[0][0] > 0.5   # the head rotor lifts its share
