@@ -86,6 +86,9 @@ def _cli(*args, cwd):
 def test_cli_help_and_cfg_work_from_any_directory(tmp_path):
     res = _cli("--help", cwd=tmp_path)
     assert res.returncode == 0 and "drone: " in res.stdout and "experiment: " in res.stdout
+    listed = res.stdout.split("Config groups")[0]   # the one-line-each part, above Hydra's group list
+    missing = [n for n in [*RUNNERS, *drone_names()] if f" {n} " not in listed.replace("\n", " \n")]
+    assert not missing, f"sdexp --help does not describe {missing}: conf/hydra/help/sdexp.yaml"
     res = _cli("drone=rod", "--cfg", "job", cwd=tmp_path)
     assert res.returncode == 0 and "youngs_modulus: 6000" in res.stdout
     res = _cli("drone.youngs_modulos=5", "--cfg", "job", cwd=tmp_path)
