@@ -88,7 +88,7 @@ def rejected(*overrides) -> str:
     ("+sim.effects=[{name:payload,mass:nan}]", "sim.effects[0].mass", "finite"),
     # experiment.params: a checked set of keys, types and ranges
     ("+experiment.params.secnds=3", "experiment.params.secnds", "did you mean experiment.params.seconds"),
-    ("+experiment.params.drones=[rod]", "experiment.params.drones", "allowed controllers, seconds, start, target"),
+    ("+experiment.params.drones=[rod]", "experiment.params.drones", "allowed animate, controllers, paraview, seconds, start, target"),
     ("experiment=record +experiment.params.flights=3", "experiment.params.flights", "allowed none"),
     ("experiment.params.seconds=-1", "experiment.params.seconds", "> 0"),
     ("experiment.params.seconds=abc", "experiment.params.seconds", "a number"),
@@ -99,6 +99,9 @@ def rejected(*overrides) -> str:
     ("experiment=bench_sim experiment.params.scaling_drone=rodd", "experiment.params.scaling_drone", "flower"),
     ("experiment=validate_fem +experiment.params.beam.lenght=2", "experiment.params.beam.lenght", "length"),
     ("experiment=hover_deform experiment.params.ramp_seconds=inf", "experiment.params.ramp_seconds", "finite"),
+    ("experiment.params.animate=[ours,nope]", "experiment.params.animate", "ours, rigid_lqr, geometry_lqr, neural"),
+    ("experiment.params.animate=true", "experiment.params.animate", "a list"),
+    ("experiment=obstacle experiment.params.animate=[ours]", "experiment.params.animate", "a boolean"),
 ])
 def test_bad_config_values_name_the_key_and_the_allowed_values(override, key, allowed):
     message = rejected(*override.split())

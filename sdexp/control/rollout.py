@@ -21,6 +21,10 @@ Metrics (README "Metrics"):
                   paper's "thrust usage"; ``thrust_per_second`` divides it by survival_time;
   max_tilt_deg    the largest tilt from upright (``tilt``), what the loss-of-control limit reads;
   max_attitude_deg  the largest |Euler angle| component (yaw included).
+
+``recorder`` (a ``FrameRecorder``, off by default) keeps copies of the simulator's vertex
+positions every few control steps for an animation (``sdexp.eval.animation``); it only reads
+the simulator, so a flight's numbers are the same bit for bit with it or without it.
 """
 from __future__ import annotations
 
@@ -92,16 +96,56 @@ class LossOfControl:
         return None
 
 
-def fly(sim: Simulator, controller, task: Task, on_step=None, limits=None) -> Flight:
+class FrameRecorder:
+    """Copies of the simulator's vertex positions (the FEM nodes, (nv, dim)) at about ``fps``
+    frames per simulated second: every ``every`` control steps, plus the release and the last
+    recorded state of the flight. ``times`` (s) and ``points`` grow together."""
+
+    def __init__(self, fps: float = 25.0):
+        if not fps > 0:
+            raise ValueError(f"fps = {fps!r}: allowed > 0")
+        self.fps = float(fps)
+        self.every, self.dt = 1, None
+        self.times: list[float] = []
+        self.points: list[np.ndarray] = []
+
+    def start(self, sim: Simulator) -> None:
+        self.dt = float(sim.cfg.control_dt)
+        self.every = max(1, int(round(1.0 / (self.fps * self.dt))))
+        self.times, self.points = [], []
+        self._add(sim, sim.t)
+
+    def step(self, sim: Simulator, done: int) -> None:
+        """After ``done`` control steps."""
+        if done % self.every == 0:
+            self._add(sim, sim.t)
+
+    def finish(self, sim: Simulator, t: float) -> None:
+        """The flight's last recorded state (time ``t``), unless it is the last frame already
+        (after a blow-up the simulator holds the last sane state, ``t`` its time)."""
+        if not self.times or self.times[-1] != t:
+            self._add(sim, t)
+
+    def _add(self, sim: Simulator, t: float) -> None:
+        self.times.append(float(t))
+        self.points.append(np.array(sim.x, dtype=float, copy=True))
+
+    @property
+    def frame_rate(self) -> float:
+        """Frames per simulated second actually recorded (the control rate over ``every``)."""
+        return 1.0 / (self.every * self.dt) if self.dt else self.fps
+
+
+def fly(sim: Simulator, controller, task: Task, on_step=None, limits=None, recorder=None) -> Flight:
     """``limits``: the loss-of-control limits (a ``FlightConfig`` or the ``flight`` config node);
-    None = the schema's defaults."""
+    None = the schema's defaults. ``recorder``: a ``FrameRecorder`` to fill (None: nothing kept)."""
     # the controllers' matrices are tiny (28 x 28 at most): BLAS threads only add hand-offs and
     # stall when the simulator's threads hold the cores
     with threadpool_limits(1, user_api="blas"):
-        return _fly(sim, controller, task, on_step, LossOfControl(task, limits))
+        return _fly(sim, controller, task, on_step, LossOfControl(task, limits), recorder)
 
 
-def _fly(sim: Simulator, controller, task: Task, on_step, lost: LossOfControl) -> Flight:
+def _fly(sim: Simulator, controller, task: Task, on_step, lost: LossOfControl, recorder=None) -> Flight:
     sim.reset()
     # release the drone where its *measured* position (the mean of its IMUs) is task.start
     readings = sim.reset(position=task.start - sim.state(noisy=False).p)
@@ -113,6 +157,8 @@ def _fly(sim: Simulator, controller, task: Task, on_step, lost: LossOfControl) -
     flight.t.append(0.0)
     flight.x.append(first.x)
     flight.goal.append(task.goal(0.0).x)
+    if recorder is not None:
+        recorder.start(sim)
     for k in range(steps):
         t = k * sim.cfg.control_dt
         try:
@@ -135,10 +181,14 @@ def _fly(sim: Simulator, controller, task: Task, on_step, lost: LossOfControl) -
         flight.goal.append(task.goal(sim.t).x)
         if on_step is not None:
             on_step()
+        if recorder is not None:
+            recorder.step(sim, k + 1)
         reason = lost.check(state)
         if reason is not None:
             flight.failure, flight.failure_time = reason, sim.t
             break
+    if recorder is not None:
+        recorder.finish(sim, flight.t[-1])
     return flight
 
 

@@ -27,6 +27,7 @@ RUNNERS = {
     "ablation_fixed_point": "sdexp.eval.ablation_fixed_point:run",
     "bench_control": "sdexp.eval.bench_control:run",
     "bench_sim": "sdexp.eval.bench_sim:run",
+    "bench_sweep": "sdexp.eval.bench_sweep:run",
     "discrepancy": "sdexp.discrepancy.workflow:run",
     "discrepancy_bench": "sdexp.discrepancy.bench:run",
     "gallery": "sdexp.eval.gallery:run",
@@ -58,7 +59,7 @@ PARAM_RANGES = {
     "flight_attempts": _POSITIVE, "workers": _POSITIVE, "seeds": _NONNEGATIVE, "nulls": _NONNEGATIVE,
     "unmodelled": _NONNEGATIVE, "raw_hidden": _POSITIVE, "drone_edge_length": _POSITIVE,
     "test_seed_offset": _NONNEGATIVE, "scaling_edges": _POSITIVE, "n_values": _POSITIVE,
-    "layers": _POSITIVE, "refine": _POSITIVE, "noise_levels": _NONNEGATIVE,
+    "layers": _POSITIVE, "jobs": _POSITIVE, "refine": _POSITIVE, "noise_levels": _NONNEGATIVE,
 }
 
 
@@ -154,6 +155,12 @@ def check_params(cfg: DictConfig) -> None:
                 if sub not in fields:
                     raise UserError(f"{full}.{sub} is not a parameter of {name}'s {key}: allowed "
                                     f"{', '.join(fields)}")
+        if key == "animate" and isinstance(value, list):   # sota: which of its flights are drawn
+            flown = list(given.get("controllers") or [])
+            stray = [c for c in value if c not in flown]
+            if stray:
+                raise UserError(f"{full} = {value!r}: {stray[0]!r} is not flown: allowed a list of the "
+                                f"controllers in experiment.params.controllers ({', '.join(map(str, flown)) or 'none'})")
         if key == "elements" and not set(value) <= set(ELEMENTS):
             raise UserError(f"{full} = {value!r}: allowed a list of {', '.join(ELEMENTS)}")
         if key in ("drones", "scaling_drone") and value is not None:
@@ -256,8 +263,9 @@ def _flat(node: Any, prefix: str = "") -> dict:
 
 
 # keys that say where a run looks things up or how many cores it may use, not what it computes
-# (sweep_dir: what a report reads is compared as experiment.params.sweep_dir)
-NOT_COMPARED = ("cache_dir", "cores", "sweep_dir")
+# (sweep_dir: what a report reads is compared as experiment.params.sweep_dir; animate: whether
+# a flight is also drawn, its numbers are the same bit for bit)
+NOT_COMPARED = ("cache_dir", "cores", "sweep_dir", "experiment.params.animate", "experiment.params.paraview")
 
 
 def config_differences(saved: dict, current: dict) -> list[str]:

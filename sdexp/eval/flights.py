@@ -34,10 +34,11 @@ class Setup:
     def task(self, start, target, seconds: float, **kw) -> Task:
         return Task(start=start, target=target, seconds=seconds, n_s=self.dyn.n_s, **kw)
 
-    def fly(self, sim: Simulator, controller, task: Task, label: str | None = None, watch=None
-            ) -> tuple[Flight, dict]:
+    def fly(self, sim: Simulator, controller, task: Task, label: str | None = None, watch=None,
+            recorder=None) -> tuple[Flight, dict]:
         """Fly with a progress bar; ``watch(sim)`` is called after every step (e.g. contacts).
-        The loss-of-control limits are the config's ``flight`` group, the same for every controller."""
+        The loss-of-control limits are the config's ``flight`` group, the same for every controller.
+        ``recorder``: a ``FrameRecorder`` that keeps the frames of an animation (``animate``)."""
         bar = None
         if self.progress:
             from tqdm import tqdm
@@ -49,10 +50,26 @@ class Setup:
                 bar.update()
             if watch is not None:
                 watch(sim)
-        flight = fly(sim, controller, task, on_step=on_step, limits=getattr(self.cfg, "flight", None))
+        flight = fly(sim, controller, task, on_step=on_step, limits=getattr(self.cfg, "flight", None),
+                     recorder=recorder)
         if bar is not None:
             bar.close()
         return flight, metrics(flight, self.dyn.slices["p"], self.dyn.slices["e"], task.seconds)
+
+    def recorder(self, on: bool):
+        """A ``FrameRecorder`` for a flight to animate (None: ``on`` is false)."""
+        from sdexp.control.rollout import FrameRecorder
+        from sdexp.eval.animation import FRAME_RATE
+        return FrameRecorder(FRAME_RATE) if on else None
+
+    def animate(self, out_dir: Path, stem: str, recorder, title: str) -> None:
+        """``<stem>.mp4`` of a recorded flight, and with ``experiment.params.paraview`` the
+        ParaView series ``<stem>_vtu/``."""
+        if recorder is None:
+            return
+        from sdexp.eval.animation import save_flight
+        save_flight(out_dir, stem, recorder, self.drone, list(self.cfg.sim.obstacles), title, self.progress,
+                    paraview=bool(self.cfg.experiment.params.get("paraview", False)))
 
 
 def flight_table(flight: Flight, dyn) -> pd.DataFrame:
@@ -72,25 +89,49 @@ def flight_table(flight: Flight, dyn) -> pd.DataFrame:
     return pd.DataFrame(cols)
 
 
-def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path: Path, suptitle: str) -> None:
-    """The paper's SOTA figure: (x, y, z) over time, one panel per flight, goal dashed."""
+def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path: Path, suptitle: str,
+                  seconds: float) -> None:
+    """The paper's SOTA figure: (x, y, z) over time, one panel per flight, goal dashed. Panels
+    share the task's whole time and one position scale (start and goal +-3 m; a flight that leaves it
+    runs off the panel), so a flight that ended early reads as a short line ending in a cross."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     n = len(tables)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False)
-    for ax, (name, tab) in zip(axes[0], tables.items()):
-        for axis, color in zip(("x", "y", "z"), ("tab:red", "tab:green", "tab:blue")):
+    cols = 2 if n > 2 else n
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6.6 * cols, 3.6 * rows + 0.9), sharex=True, sharey=True,
+                             squeeze=False)
+    goals = np.concatenate([np.r_[tab[[f"goal_{a}" for a in "xyz" if f"goal_{a}" in tab]].to_numpy().ravel(),
+                                  tab[[a for a in "xyz" if a in tab]].iloc[0].to_numpy()]   # and the start
+                            for tab in tables.values()])
+    colors = {"x": "tab:red", "y": "tab:green", "z": "tab:blue"}
+    for ax, (name, tab) in zip(axes.ravel(), tables.items()):
+        for axis, color in colors.items():
             if axis in tab:
-                ax.plot(tab["t"], tab[axis], color=color, label=axis)
-                ax.plot(tab["t"], tab[f"goal_{axis}"], color=color, ls="--", lw=0.8)
-        ax.set_title(titles.get(name, name), fontsize=9)
-        ax.set_xlabel("t (s)")
+                ax.plot(tab["t"], tab[axis], color=color, lw=1.8)
+                ax.plot(tab["t"], tab[f"goal_{axis}"], color=color, ls="--", lw=1.0)
+                if tab["t"].iloc[-1] < seconds - 0.05:
+                    ax.plot(tab["t"].iloc[-1], np.clip(tab[axis].iloc[-1], goals.min() - 3, goals.max() + 3),
+                            "x", color=color, ms=10, mew=2.5)
+        ax.set_title(titles.get(name, name), fontsize=11)
         ax.grid(alpha=0.3)
-    axes[0, 0].set_ylabel("position (m); dashed: goal")
-    axes[0, 0].legend(loc="best", fontsize=8)
-    fig.suptitle(suptitle)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+        ax.tick_params(labelsize=10)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    axes[0, 0].set_xlim(0, seconds)
+    axes[0, 0].set_ylim(goals.min() - 3, goals.max() + 3)
+    for ax in axes[-1]:
+        ax.set_xlabel("t (s)", fontsize=11)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("position (m)", fontsize=11)
+    handles = [Line2D([], [], color=c, lw=1.8, label=a) for a, c in colors.items()]
+    handles += [Line2D([], [], color="gray", ls="--", label="goal"),
+                Line2D([], [], color="gray", marker="x", ls="", ms=9, mew=2.5, label="flight ended (failure)")]
+    fig.legend(handles=handles, loc="upper right", ncol=5, fontsize=10, frameon=False)
+    fig.suptitle(suptitle, x=0.02, ha="left", fontsize=13)
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.savefig(path, dpi=110)
     plt.close(fig)

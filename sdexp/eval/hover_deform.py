@@ -7,7 +7,8 @@ within +-5 cm.
 Writes ``hover_deform.csv`` (the flight), ``hover_deform.png`` (bend angles against their goal;
 attitude and position deviation with the +-3 deg / +-5 cm band) and metrics measured after
 ``settle_seconds``: max attitude deviation (deg), max position deviation (cm), RMS bend
-tracking error (deg), and whether the paper's band held.
+tracking error (deg), and whether the paper's band held. With ``experiment.params.animate``:
+``hover_deform.mp4`` (the deforming drone) and ``hover_deform_vtu/hover_deform.pvd`` (ParaView).
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, flight_table
+from sdexp.eval.sota import ending
 
 
 def schedule(n_s: int, angle: float, settle: float, ramp: float, hold: float) -> tuple[list, list]:
@@ -44,7 +46,10 @@ def run(cfg, out_dir: Path) -> dict:
     start = np.zeros(dyn.dim)
     task = setup.task(start, start, times[-1], bend_times=times, bend_targets=targets)
     sim = setup.simulator()
-    flight, m = setup.fly(sim, setup.controller("ours", sim), task, "hover and deform")
+    rec = setup.recorder(bool(p.animate))
+    flight, m = setup.fly(sim, setup.controller("ours", sim), task, "hover and deform", recorder=rec)
+    setup.animate(out_dir, "hover_deform", rec, f"{cfg.drone.name}: hover with active deformation "
+                  f"({float(p.angle_deg):g} deg); {ending(m)}")
     tab = flight_table(flight, dyn)
     tab.to_csv(out_dir / "hover_deform.csv", index=False)
     a = flight.arrays()

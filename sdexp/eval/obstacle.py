@@ -10,6 +10,8 @@ max Z deviation (m), whether the drone touched an obstacle, and ``passed``: beyo
 the end, no contact, and inside the opening while level with them (round, over or under the
 blocks is not passing).
 The width is the mesh's Z extent: a tumbling drone narrows it too, so read it with the pitch.
+With ``experiment.params.animate``: ``obstacle.mp4`` (the drone and the blocks) and
+``obstacle_vtu/obstacle.pvd`` (the mesh series for ParaView).
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, flight_table
+from sdexp.eval.sota import ending
 from sdexp.sim.statics import held_bend, outer_rotors
 
 
@@ -65,7 +68,10 @@ def run(cfg, out_dir: Path) -> dict:
         widths.append(float(np.ptp(s.x[:, 2])))
         contact.append(touching(s.x, boxes))
 
-    flight, m = setup.fly(sim, setup.controller("ours", sim), task, "obstacle", watch)
+    rec = setup.recorder(bool(p.animate))
+    flight, m = setup.fly(sim, setup.controller("ours", sim), task, "obstacle", watch, recorder=rec)
+    setup.animate(out_dir, "obstacle", rec, f"{cfg.drone.name}: through the gap, folding to "
+                  f"{float(p.fold_deg):g} deg; {ending(m)}")
     tab = flight_table(flight, dyn)
     tab["width_z"] = [rest_width] + widths[: len(tab) - 1]
     tab["contact"] = [False] + contact[: len(tab) - 1]

@@ -6,12 +6,13 @@ Writes ``sota.csv`` (our metrics beside the paper's; ``failure`` is why a flight
 a blow-up, a controller failure or a loss of control, config ``flight`` -- and ``survival_time``
 when), ``trajectory_<controller>.csv``, ``sota.png`` (the paper's figure: x, y, z over time per
 controller, each titled with how its flight ended) and ours' median milliseconds per
-relinearisation (``bench_control`` measures the rest).
+relinearisation (``bench_control`` measures the rest). The controllers listed in
+``experiment.params.animate`` (default ours) also get ``sota_<controller>.mp4`` (the deforming
+drone in flight) and ``sota_<controller>_vtu/sota_<controller>.pvd`` (its mesh series for ParaView).
 """
 from __future__ import annotations
 
 import logging
-import textwrap
 import time
 from pathlib import Path
 
@@ -34,11 +35,17 @@ LABELS = {"ours": "ours (relinearizing LQR)", "rigid_lqr": "LQR (rest shape)",
           "geometry_lqr": "geometry-updating LQR", "neural": "neural controller"}
 
 
-def ending(m: dict, width: int = 48) -> str:
-    """How a flight ended, for a figure title: survived, or the failure's time and reason."""
+def ending(m: dict) -> str:
+    """How a flight ended, for a figure title: survived, or the failure's time and short reason."""
     if m["survived"]:
-        return f"survived {m['survival_time']:.2f} s"
-    return textwrap.fill(f"ended at {m['survival_time']:.2f} s: {m['failure']}", width)
+        return f"survived {m['survival_time']:.0f} s"
+    why = m["failure"].split(": ", 1)[-1]
+    why = why.split(",")[0] if why.startswith("left the arena") else why.split(" > ")[0]
+    return f"failed at {m['survival_time']:.2f} s ({why})"
+
+
+def _paper_ending(survival: float, seconds: float) -> str:
+    return f"survived {survival:g} s" if survival >= seconds else f"failed at {survival:g} s"
 
 
 def run(cfg, out_dir: Path) -> dict:
@@ -48,19 +55,24 @@ def run(cfg, out_dir: Path) -> dict:
     seconds = float(p.seconds)
     task = setup.task(np.asarray(p.start, float), np.asarray(p.target, float), seconds)
     rows, tables, titles, out = [], {}, {}, {}
+    animate = set(p.animate or [])
     for name in p.controllers:
         sim = setup.simulator()
         ctl = setup.controller(name, sim)
+        rec = setup.recorder(name in animate)
         t0 = time.perf_counter()
-        flight, m = setup.fly(sim, ctl, task, LABELS.get(name, name))
+        flight, m = setup.fly(sim, ctl, task, LABELS.get(name, name), recorder=rec)
         wall = time.perf_counter() - t0
+        setup.animate(out_dir, f"sota_{name}", rec, f"{cfg.drone.name}: {LABELS.get(name, name)}, "
+                      f"{list(p.start)} -> {list(p.target)}; {ending(m)}")
         tab = flight_table(flight, setup.dyn)
         tab.to_csv(out_dir / f"trajectory_{name}.csv", index=False)
         tables[name] = tab
         ps, pe, pu = PAPER.get(name, (np.nan,) * 3)
         rows.append({"controller": name, **m, "paper_survival_time": ps, "paper_final_error": pe,
                      "paper_thrust_usage": pu, "wall_seconds": wall})
-        titles[name] = f"{LABELS.get(name, name)}\n{ending(m)}\nfinal error {m['final_error']:.2f} m"
+        titles[name] = (f"{LABELS.get(name, name)}: {ending(m)}, {m['final_error']:.2f} m off\n"
+                        f"paper: {_paper_ending(ps, seconds)}, {pe:g} m off")
         out.update({f"{name}_{k}": v for k, v in m.items()})
         if name == "ours" and ctl.timings:
             out["ours_ms_per_relinearization"] = 1e3 * float(np.median(ctl.timings))
@@ -69,5 +81,5 @@ def run(cfg, out_dir: Path) -> dict:
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "sota.csv", index=False)
     position_plot(tables, titles, out_dir / "sota.png",
-                  f"{cfg.drone.name}: {list(p.start)} -> {list(p.target)} in {seconds:g} s")
+                  f"{cfg.drone.name}: {list(p.start)} -> {list(p.target)} in {seconds:g} s (seed {cfg.seed})", seconds)
     return out

@@ -22,7 +22,8 @@ import pandas as pd
 
 from sdexp.errors import UserError
 
-IGNORED_KEYS = ("seed", "cache_dir", "cores", "sweep_dir")   # not what tells a group from another
+# not what tells a group from another (animate: whether a flight is also drawn)
+IGNORED_KEYS = ("seed", "cache_dir", "cores", "sweep_dir", "experiment.params.animate", "experiment.params.paraview")
 
 
 def _flat(node, prefix: str = "") -> dict:

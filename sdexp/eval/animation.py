@@ -1,0 +1,434 @@
+"""Pictures of a flight in motion: a video of the deforming drone and a mesh series for ParaView.
+
+A flight records the simulator's vertex positions (the FEM nodes) every few control steps
+(``sdexp.control.rollout.FrameRecorder``); from those frames
+
+* ``write_animation`` draws the drone's surface with matplotlib -- 3D: the boundary triangles
+  (for quadratic elements the subfaces through the mid-edge nodes, ``drone.boundary``), coloured
+  by how far each point is from the body's rigid motion (the best-fit rotation and translation
+  of the rest shape, mass-weighted) or by height, lit from a fixed direction; 2D: the outline --
+  into an MP4 (H.264 through imageio-ffmpeg, which ships its own ffmpeg) or, where ffmpeg is
+  not available, a GIF. The axes are fixed: they cover the whole flight (and the obstacles
+  within reach) when it stays within a few body sizes, otherwise a window of fixed size follows
+  the drone.
+* ``write_vtu_series`` writes one ``.vtu`` per frame (the FEM elements, meshio) and a ``.pvd``
+  collection with their times, which ParaView opens as one time series.
+
+``save_flight`` does both for a runner (``experiment.params.animate``).
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import subprocess
+import textwrap
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+FRAME_RATE = 25.0            # frames per simulated second, recorded and played
+SIZE = (640, 480)            # pixels (multiples of 16: H.264 takes them as they are)
+DPI = 100
+FOLLOW_FACTOR = 4.0          # a flight spanning more than this x the body's size: the view follows it
+
+# VTK cell types by nodes per element (meshio's names; the simulator keeps VTK's node order)
+_CELL_TYPES = {2: "line", 3: "triangle", 4: "tetra", 6: "triangle6", 10: "tetra10"}
+
+
+# ------------------------------------------------------------------------------------ ParaView
+
+def _cell_blocks(cells, dim: int) -> list[tuple[str, np.ndarray]]:
+    if isinstance(cells, dict):
+        return [(k, np.asarray(v)) for k, v in cells.items()]
+    if isinstance(cells, (list, tuple)) and cells and isinstance(cells[0], tuple):
+        return [(k, np.asarray(v)) for k, v in cells]
+    cells = np.asarray(cells, dtype=np.int32)
+    k = cells.shape[1]
+    if k == 4 and dim == 2:
+        raise ValueError("4-node cells of a 2D mesh are ambiguous: pass [('quad', cells)]")
+    if k not in _CELL_TYPES:
+        raise ValueError(f"cells with {k} nodes: no VTK type known (allowed {sorted(_CELL_TYPES)})")
+    return [(_CELL_TYPES[k], cells)]
+
+
+def write_vtu_series(folder, points_seq, cells, times, point_data=None, name: str | None = None,
+                     dtype=np.float64) -> Path:
+    """One ``<name>_<i>.vtu`` per frame in ``folder`` and ``<name>.pvd`` listing them with their
+    times (``name``: the folder's name); returns the .pvd's path.
+
+    points_seq (n_frames, nv, dim) positions (2D points get z = 0); cells (ne, k) node indices in
+    VTK order (k = 4 / 10: linear / quadratic tets, 3 / 6: triangles, 2: segments), or
+    [(meshio cell type, array), ...]; times (n_frames,) s; point_data {name: (n_frames, nv, ...)};
+    dtype: of the positions and the point data as written (float32 halves the files).
+    """
+    import meshio
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    name = name or folder.name
+    points_seq = [np.asarray(p, dtype=dtype) for p in points_seq]
+    times = [float(t) for t in times]
+    if len(points_seq) != len(times):
+        raise ValueError(f"{len(points_seq)} frames but {len(times)} times")
+    dim = points_seq[0].shape[1] if points_seq else 3
+    blocks = _cell_blocks(cells, dim)
+    point_data = {k: np.asarray(v) for k, v in (point_data or {}).items()}
+    for k, v in point_data.items():
+        if len(v) != len(points_seq):
+            raise ValueError(f"point_data[{k!r}] has {len(v)} frames, the positions {len(points_seq)}")
+    for old in folder.glob(f"{name}_*.vtu"):   # a shorter series written here before
+        old.unlink()
+    files = []
+    for i, pts in enumerate(points_seq):
+        if pts.shape[1] == 2:
+            pts = np.c_[pts, np.zeros(len(pts), dtype=dtype)]
+        data = {}
+        for k, v in point_data.items():
+            d = np.asarray(v[i], dtype=dtype)
+            data[k] = np.c_[d, np.zeros(len(d), dtype=dtype)] if d.ndim == 2 and d.shape[1] == 2 else d
+        fname = f"{name}_{i:05d}.vtu"
+        meshio.write(folder / fname, meshio.Mesh(pts, blocks, point_data=data), file_format="vtu",
+                     binary=True, compression="zlib")
+        files.append(fname)
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">', "  <Collection>"]
+    lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>' for t, f in zip(times, files)]
+    lines += ["  </Collection>", "</VTKFile>", ""]
+    pvd = folder / f"{name}.pvd"
+    pvd.write_text("\n".join(lines))
+    return pvd
+
+
+def read_pvd(path) -> list[tuple[float, str]]:
+    """(time, file) of every frame a .pvd lists."""
+    import xml.etree.ElementTree as ET
+    root = ET.parse(path).getroot()
+    return [(float(d.get("timestep")), d.get("file")) for d in root.iter("DataSet")]
+
+
+# ------------------------------------------------------------------------------------ geometry
+
+def rigid_fit(frames: np.ndarray, rest: np.ndarray, weights=None) -> np.ndarray:
+    """The rest shape moved by the best-fit (weighted least squares) rotation and translation
+    onto each frame: (n_frames, nv, dim) (Kabsch, batched)."""
+    frames = np.asarray(frames, dtype=float)
+    rest = np.asarray(rest, dtype=float)
+    w = np.ones(len(rest)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    c0 = w @ rest
+    c = np.einsum("n,fnd->fd", w, frames)
+    a = rest - c0
+    h = np.einsum("n,ni,fnj->fij", w, a, frames - c[:, None, :])   # sum w a b^T
+    u, _, vt = np.linalg.svd(h)
+    det = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", vt, u)))
+    d = np.ones((len(frames), rest.shape[1]))
+    d[:, -1] = det
+    r = np.einsum("fji,fj,fkj->fik", vt, d, u)                       # V diag(d) U^T
+    return np.einsum("fij,nj->fni", r, a) + c[:, None, :]
+
+
+def deformation(frames: np.ndarray, rest: np.ndarray, weights=None) -> np.ndarray:
+    """Each node's distance (m) from where the rigid motion would put it: (n_frames, nv)."""
+    frames = np.asarray(frames, dtype=float)
+    return np.linalg.norm(frames - rigid_fit(frames, rest, weights), axis=-1)
+
+
+def _boxes(obstacles) -> list[tuple[np.ndarray, np.ndarray]]:
+    out = []
+    for b in obstacles or []:
+        lo, hi = (b["min"], b["max"]) if isinstance(b, dict) else \
+            ((b.min, b.max) if hasattr(b, "min") else b)
+        out.append((np.asarray(list(lo), dtype=float), np.asarray(list(hi), dtype=float)))
+    return out
+
+
+def _box_faces(lo: np.ndarray, hi: np.ndarray) -> list[np.ndarray]:
+    c = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]], [hi[0], hi[1], lo[2]], [lo[0], hi[1], lo[2]],
+                  [lo[0], lo[1], hi[2]], [hi[0], lo[1], hi[2]], [hi[0], hi[1], hi[2]], [lo[0], hi[1], hi[2]]])
+    quads = [[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [1, 2, 6, 5], [0, 3, 7, 4]]
+    return [c[q] for q in quads]
+
+
+def _clip(boxes, lo, hi):
+    """The parts of the boxes inside [lo, hi] (empty ones dropped)."""
+    out = []
+    for blo, bhi in boxes:
+        a, b = np.maximum(blo[: len(lo)], lo), np.minimum(bhi[: len(hi)], hi)
+        if np.all(b > a):
+            out.append((a, b))
+    return out
+
+
+class _View:
+    """Fixed axes for the whole animation. cover: limits around every frame (and nothing moves
+    but the drone); follow: a window of fixed size around the drone, which is drawn relative to
+    its centre (the axes read "relative to the centre", the centre's position is printed)."""
+
+    def __init__(self, frames: np.ndarray, rest: np.ndarray, view: str):
+        body = float(np.ptp(rest, axis=0).max())
+        lo, hi = frames.min(axis=(0, 1)), frames.max(axis=(0, 1))
+        if view == "auto":
+            view = "follow" if float((hi - lo).max()) > FOLLOW_FACTOR * body else "cover"
+        if view not in ("cover", "follow"):
+            raise ValueError(f"view = {view!r}: allowed auto, cover, follow")
+        self.mode = view
+        if view == "cover":
+            centre, span = 0.5 * (lo + hi), hi - lo
+            # each axis at least half the largest span: a flat flight is not drawn as a sliver
+            half = 0.54 * np.maximum(span, 0.5 * float(span.max()))
+        else:
+            centre, half = np.zeros(len(lo)), np.full(len(lo), 0.75 * body)
+        self.lo, self.hi = centre - half, centre + half
+
+    def offset(self, pts: np.ndarray) -> np.ndarray:
+        if self.mode == "cover":
+            return np.zeros(pts.shape[1])
+        return 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+
+
+# ------------------------------------------------------------------------------------ video
+
+@functools.lru_cache(maxsize=1)
+def _ffmpeg_available() -> bool:
+    """imageio-ffmpeg's ffmpeg binary (or the one it is pointed at) is there and runs."""
+    try:
+        import imageio_ffmpeg
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+        return subprocess.run([exe, "-version"], capture_output=True, timeout=30).returncode == 0
+    except Exception:   # noqa: BLE001 - no package, no binary, not runnable: GIF instead
+        return False
+
+
+class _Sink:
+    """Frames (H, W, 3 uint8) into an MP4 (streamed through ffmpeg) or a GIF."""
+
+    def __init__(self, path: Path, fps: float):
+        import imageio.v2 as imageio
+        self.path, self.fps, self.gif = path, fps, []
+        self.writer = None
+        if path.suffix.lower() == ".mp4":
+            if _ffmpeg_available():
+                self.writer = imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                                                 quality=6, pixelformat="yuv420p", macro_block_size=16,
+                                                 ffmpeg_log_level="error")
+            else:
+                self.path = path.with_suffix(".gif")
+                log.warning(f"sdexp: ffmpeg is not available (pip install imageio-ffmpeg): writing "
+                            f"{self.path.name} instead of {path.name}")
+
+    def add(self, frame: np.ndarray) -> None:
+        if self.writer is not None:
+            self.writer.append_data(frame)
+        else:
+            self.gif.append(frame[::2, ::2].copy())   # GIFs are big: half the size
+
+    def close(self) -> Path:
+        if self.writer is not None:
+            self.writer.close()
+        else:
+            import imageio.v3 as iio
+            iio.imwrite(self.path, np.stack(self.gif), extension=".gif", plugin="pillow",
+                        duration=1000.0 / self.fps, loop=0)
+        return self.path
+
+
+def write_animation(path, frames, times, faces, *, rest=None, weights=None, obstacles=None, title: str = "",
+                    color: str = "deformation", view: str = "auto", fps: float | None = None,
+                    size: tuple[int, int] = SIZE, progress: bool = True) -> Path:
+    """Draw the drone in every frame into ``path`` (.mp4, or .gif); returns the path written
+    (a .gif beside the asked .mp4 when ffmpeg is not available).
+
+    frames (n_frames, nv, dim) node positions; times (n_frames,) s; faces: the boundary
+    triangles (3D) or segments (2D) (``drone.boundary``); rest (nv, dim) and weights (nv,) (the
+    nodal masses): the rest shape whose rigid motion ``color="deformation"`` measures from
+    (default: the first frame, equal weights); ``color="height"``: the vertical (y) coordinate;
+    obstacles: boxes (``sim.obstacles`` entries, or (min, max) pairs); view: auto | cover |
+    follow; fps: playback frames per second (default: the recording's, so it plays in real time).
+    """
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from tqdm import tqdm
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames = np.asarray(frames, dtype=float)
+    times = np.asarray(times, dtype=float)
+    faces = np.asarray(faces)
+    if frames.ndim != 3 or len(frames) == 0 or len(frames) != len(times):
+        raise ValueError(f"frames {frames.shape} and times {times.shape}: need (n_frames, nv, dim) and (n_frames,)")
+    dim = frames.shape[2]
+    rest = frames[0] if rest is None else np.asarray(rest, dtype=float)
+    if fps is None:
+        fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else FRAME_RATE
+    if color == "deformation":
+        values = 100.0 * deformation(frames, rest, weights)      # cm
+        label = "distance from the rigid motion (cm)"
+    elif color == "height":
+        values = frames[..., 1]
+        label = "height y (m)"
+    else:
+        raise ValueError(f"color = {color!r}: allowed deformation, height")
+    face_values = values[:, faces].mean(axis=2)                    # (n_frames, nf)
+    vmin, vmax = (0.0, max(float(face_values.max()), 1e-3)) if color == "deformation" else \
+        (float(face_values.min()), max(float(face_values.max()), float(face_values.min()) + 1e-3))
+    cmap = matplotlib.colormaps["viridis"]
+    norm = matplotlib.colors.Normalize(vmin, vmax)
+    boxes = _boxes(obstacles)
+    scope = _View(frames, rest, view)
+
+    w, h = size
+    fig = Figure(figsize=(w / DPI, h / DPI), dpi=DPI)
+    canvas = FigureCanvasAgg(fig)
+    draw = (_Draw3D if dim == 3 else _Draw2D)(fig, faces, boxes, scope)
+    bar = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=fig.add_axes((0.88, 0.18, 0.022, 0.64)))
+    bar.set_label(label, fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle("\n".join(textwrap.fill(line, 90) for line in title.splitlines()), fontsize=10)
+    clock = fig.text(0.01, 0.015, "", fontsize=9, family="monospace", animated=True)
+    # everything but the drone, the obstacles and the clock is drawn once (blitting)
+    canvas.draw()
+    background = canvas.copy_from_bbox(fig.bbox)
+    sink = _Sink(path, fps)
+    try:
+        for i in tqdm(range(len(frames)), desc=f"animation {path.name}", unit="frame", leave=False,
+                      disable=None if progress else True):
+            canvas.restore_region(background)
+            shift = scope.offset(frames[i])
+            draw.frame(frames[i] - shift, cmap(norm(face_values[i])), shift)
+            where = "" if scope.mode == "cover" else \
+                "   centre (" + ", ".join(f"{v:.2f}" for v in shift) + ") m"
+            clock.set_text(f"t = {times[i]:6.2f} s{where}")
+            fig.draw_artist(clock)
+            sink.add(np.asarray(canvas.buffer_rgba())[..., :3])
+    finally:
+        written = sink.close()
+    return written
+
+
+class _Draw3D:
+    """The surface as lit, coloured triangles (the ones facing away culled: the surface is
+    closed and oriented outward), the obstacles as translucent boxes, each box drawn before or
+    after the drone by its depth."""
+    LIGHT = np.array([0.3, 1.0, 0.5]) / np.linalg.norm([0.3, 1.0, 0.5])
+    WALL = dict(facecolors=(0.45, 0.45, 0.5, 0.3), edgecolors=(0.3, 0.3, 0.35, 0.6), linewidths=0.6)
+
+    def __init__(self, fig, faces, boxes, scope: _View):
+        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+        self.ax = ax = fig.add_axes((0.0, 0.03, 0.84, 0.9), projection="3d")
+        ax.view_init(elev=22, azim=-60, vertical_axis="y")   # world +y is up
+        rel = "" if scope.mode == "cover" else " - centre"
+        for axis in "xyz":
+            getattr(ax, f"set_{axis}label")(f"{axis}{rel} (m)", labelpad=-4, fontsize=8)
+        ax.tick_params(labelsize=7, pad=-2)
+        ax.set_xlim(scope.lo[0], scope.hi[0])
+        ax.set_ylim(scope.lo[1], scope.hi[1])
+        ax.set_zlim(scope.lo[2], scope.hi[2])
+        ax.set_box_aspect(scope.hi - scope.lo, zoom=1.0)
+        self.faces, self.boxes, self.scope = faces, boxes, scope
+        self.surface = Poly3DCollection([], linewidths=0.0, antialiased=False, animated=True)
+        self.walls = [Poly3DCollection([], animated=True, **self.WALL) for _ in range(2)]   # behind, in front
+        for c in (self.walls[0], self.surface, self.walls[1]):
+            ax.add_collection3d(c)
+
+    def _depth(self, pts):
+        from mpl_toolkits.mplot3d import proj3d
+        return proj3d.proj_transform(pts[:, 0], pts[:, 1], pts[:, 2], self.ax.M)
+
+    def frame(self, pts, colors, shift):
+        ax = self.ax
+        px, py, pz = self._depth(pts)
+        f = self.faces
+        area = (px[f[:, 1]] - px[f[:, 0]]) * (py[f[:, 2]] - py[f[:, 0]]) - \
+            (py[f[:, 1]] - py[f[:, 0]]) * (px[f[:, 2]] - px[f[:, 0]])
+        front = area > 0
+        tri = pts[f[front]]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        colors = colors[front].copy()
+        colors[:, :3] *= (0.45 + 0.55 * np.abs(n @ self.LIGHT))[:, None]   # Lambert, ambient 0.45
+        self.surface.set_verts(tri)
+        self.surface.set_facecolor(colors)
+        if self.boxes:
+            moved = [(a - shift, b - shift) for a, b in self.boxes]
+            clipped = _clip(moved, self.scope.lo, self.scope.hi)
+            centres = np.array([0.5 * (a + b) for a, b in clipped]).reshape(-1, 3)
+            drone = float(np.mean(pz))
+            box_z = self._depth(centres)[2] if len(clipped) else []
+            for k, side in enumerate((box_z > drone, box_z <= drone) if len(clipped) else ((), ())):
+                self.walls[k].set_verts([q for (a, b), s in zip(clipped, side) if s for q in _box_faces(a, b)])
+        for c in (self.walls[0], self.surface, self.walls[1]):
+            c.do_3d_projection()
+            ax.draw_artist(c)
+
+
+class _Draw2D:
+    """The outline (boundary segments) coloured per segment; obstacles as rectangles."""
+
+    def __init__(self, fig, faces, boxes, scope: _View):
+        from matplotlib.collections import LineCollection, PatchCollection
+        self.ax = ax = fig.add_axes((0.1, 0.12, 0.72, 0.78))
+        ax.set_aspect("equal")
+        rel = "" if scope.mode == "cover" else " - centre"
+        ax.set_xlabel(f"x{rel} (m)")
+        ax.set_ylabel(f"y{rel} (m)")
+        ax.grid(alpha=0.3)
+        ax.set_xlim(scope.lo[0], scope.hi[0])
+        ax.set_ylim(scope.lo[1], scope.hi[1])
+        self.faces, self.boxes, self.scope = faces[:, :2], boxes, scope
+        self.outline = LineCollection([], linewidths=2.0, animated=True)
+        self.walls = PatchCollection([], facecolor=(0.45, 0.45, 0.5, 0.35), edgecolor=(0.3, 0.3, 0.35),
+                                     animated=True)
+        ax.add_collection(self.walls)
+        ax.add_collection(self.outline)
+
+    def frame(self, pts, colors, shift):
+        from matplotlib.patches import Rectangle
+        self.outline.set_segments(pts[self.faces])
+        self.outline.set_color(colors)
+        if self.boxes:
+            moved = [(a[:2] - shift, b[:2] - shift) for a, b in self.boxes]
+            self.walls.set_paths([Rectangle(a, *(b - a)) for a, b in _clip(moved, self.scope.lo, self.scope.hi)])
+            self.ax.draw_artist(self.walls)
+        self.ax.draw_artist(self.outline)
+
+
+# ------------------------------------------------------------------------------------ runners
+
+def save_flight(out_dir, stem: str, recorder, drone, obstacles=None, title: str = "",
+                progress: bool = True, paraview: bool = False) -> dict[str, Path]:
+    """A runner's pictures of one recorded flight: ``<stem>.mp4`` (or .gif) and the ParaView
+    series ``<stem>_vtu/<stem>.pvd`` if ``paraview`` (the FEM elements, with each node's displacement from the
+    rigid motion as point data ``deformation``; single precision, about 110 kB a frame for the
+    flower's 2887 nodes)."""
+    import time
+
+    out_dir = Path(out_dir)
+    if not recorder.points:
+        log.warning(f"sdexp: {stem}: no frames recorded, no animation")
+        return {}
+    frames = np.stack(recorder.points)
+    times = np.asarray(recorder.times)
+    fem = drone.fem
+    try:   # the flight's numbers are written whatever becomes of its pictures
+        t0 = time.perf_counter()
+        video = write_animation(out_dir / f"{stem}.mp4", frames, times, drone.boundary, rest=fem.rest,
+                                weights=fem.mass, obstacles=obstacles, title=title, fps=recorder.frame_rate,
+                                progress=progress)
+        t1 = time.perf_counter()
+        pvd = None
+        if paraview:   # opt-in: 57 MB for a 20 s flower flight, against 0.4 MB of video
+            fitted = rigid_fit(frames, fem.rest, fem.mass)
+            pvd = write_vtu_series(out_dir / f"{stem}_vtu", frames, fem.elems, times,
+                                   point_data={"deformation": frames - fitted}, name=stem, dtype=np.float32)
+        t2 = time.perf_counter()
+    except (OSError, RuntimeError) as err:
+        log.warning(f"sdexp: {stem}: the animation could not be written: {err}")
+        return {}
+    log.info(f"sdexp: {stem}: {len(frames)} frames -> {video} ({t1 - t0:.1f} s)"
+             + (f", ParaView series {pvd} ({t2 - t1:.1f} s)" if pvd else ""))
+    return {"video": video, "pvd": pvd} if pvd else {"video": video}
