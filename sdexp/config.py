@@ -242,6 +242,13 @@ def register() -> None:
         OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
 
 
+def drone_key(drone: dict) -> dict:
+    """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
+    its default is dropped, so a drone meshed as before keeps what was cached before the option."""
+    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k in ("mirror", "layers") and not v)}
+    return {**drone, "mesh": mesh}
+
+
 def _nonfinite(value: Any) -> bool:
     """True when ``value`` (a number or a sequence of them) holds a nan or an infinity."""
     if isinstance(value, bool) or value is None or isinstance(value, str):

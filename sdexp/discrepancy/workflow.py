@@ -33,7 +33,7 @@ from sdexp.discrepancy.logs import read_logs
 from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.errors import UserError
-from sdexp.sim.drone import drone_key
+from sdexp.config import drone_key
 
 log = logging.getLogger(__name__)
 

@@ -164,7 +164,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
 
     from sdexp.model.generate import commands, hover_centre
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.sensors import decompose
+    from sdexp.sensing import decompose
     from sdexp.sim.simulator import Simulator
 
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)

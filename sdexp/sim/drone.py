@@ -11,7 +11,8 @@ from sdexp.errors import UserError
 from sdexp.config import ELEMENTS
 from sdexp.sim.fem import FemModel, build_fem
 from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
-from sdexp.sim.sensors import ImuPatches, SensorLayout, build_imu_patches
+from sdexp.sensing import SensorLayout
+from sdexp.sim.sensors import ImuPatches, build_imu_patches
 from sdexp.sim.shape import Shape
 
 MESH_FORMAT = 1
@@ -80,13 +81,6 @@ def make_shape(cfg) -> Shape:
         raise UserError(f"drone.num_sensors = {cfg.num_sensors} but the {cfg.shape} shape places "
                         f"{len(shape.imus)} peripheral IMUs")
     return shape
-
-
-def drone_key(drone: dict) -> dict:
-    """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
-    its default is dropped, so a drone meshed as before keeps what was cached before the option."""
-    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k in ("mirror", "layers") and not v)}
-    return {**drone, "mesh": mesh}
 
 
 def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:

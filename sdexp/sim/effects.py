@@ -405,7 +405,7 @@ class ImuBias(Effect):
         if self.idx.size and (self.idx.min() < 0 or self.idx.max() >= k):
             raise UserError(f"sim.effects: imu_bias.imus must index the drone's {k} IMUs")
         if self.channel == "rot" and d == 3:
-            from sdexp.sim.rotations import exp_so3
+            from sdexp.sensing.rotations import exp_so3
             self.rot = exp_so3(self.value)
 
     def sense(self, r, sim):

@@ -24,7 +24,8 @@ from sdexp.sim.drone import Drone
 from sdexp.sim.effects import build_effects, overrides
 from sdexp.sim.fem import stable_substep
 from sdexp.sim.integrator import Body, extent
-from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
+from sdexp.sensing import Readings, decompose, State
+from sdexp.sim.sensors import add_noise, read_imus
 
 
 def _plain(cfg):
@@ -103,7 +104,7 @@ class Simulator:
         rotations warm-started at ``rotation`` (3x3, 3D; else identity), and the actuation chain
         (output delay, effect states such as motor lag) replayed with the past commands
         ``history`` (oldest first) without moving the body."""
-        from sdexp.sim.rotations import quat_from_matrix
+        from sdexp.sensing.rotations import quat_from_matrix
         self.reset()
         self.body.x[:] = x
         self.body.v[:] = v

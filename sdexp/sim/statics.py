@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from sdexp.config import NoiseConfig
 from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust, rigid_body
-from sdexp.sim.sensors import decompose
+from sdexp.sensing import decompose
 from sdexp.sim.simulator import Simulator
 
 

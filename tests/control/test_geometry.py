@@ -6,7 +6,7 @@ import pytest
 from sdexp.sim.drone import RotorPatches, boundary_faces
 from sdexp.sim.fem import build_fem
 from sdexp.sim.geometry import rigid_body, rotation_2d
-from sdexp.sim.rotations import matrix_from_euler
+from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.structured import box_tets, box_tris
 
 LENGTHS = (2.0, 0.4, 1.0)

@@ -198,8 +198,8 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
     """3D: the peripheral IMUs' world Euler angles and their chain-rule rates, on readings of
     IMUs spinning at constant angular velocity (central differences as the reference)."""
     from sdexp.model.generate import raw_state
-    from sdexp.sim.rotations import euler_from_matrix, euler_rates, exp_so3
-    from sdexp.sim.sensors import Readings, SensorLayout, decompose
+    from sdexp.sensing.rotations import euler_from_matrix, euler_rates, exp_so3
+    from sdexp.sensing import Readings, SensorLayout, decompose
 
     rng = np.random.default_rng(0)
     k = 5                                            # IMU 0 is the frame, 1..4 peripheral
@@ -215,7 +215,7 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
 
     raw, raw_dot = raw_at(0.3)
     assert raw.shape == raw_dot.shape == (3 + 3 + 4 * 3,)
-    R = exp_so3(w * 0.3) @ R0                         # the convention of sdexp.sim.rotations
+    R = exp_so3(w * 0.3) @ R0                         # the convention of sdexp.sensing.rotations
     np.testing.assert_allclose(raw[6:], euler_from_matrix(R[1:]).ravel(), atol=1e-12)
     np.testing.assert_allclose(raw_dot[6:], euler_rates(euler_from_matrix(R[1:]), w[1:]).ravel(), atol=1e-9)
     h = 1e-6

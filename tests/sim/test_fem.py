@@ -7,7 +7,7 @@ import pytest
 from sdexp.eval.validate_fem import Beam, FreeBody, cantilever, stiff_plate_under_thrust, structured_beam
 from sdexp.sim.integrator import Body, damp_deformation
 from sdexp.sim.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
-from sdexp.sim.rotations import matrix_from_euler
+from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.structured import box_tets, box_tris
 
 

@@ -10,7 +10,7 @@ from sdexp.errors import UserError
 from sdexp.sim.drone import boundary_faces, build_drone, make_shape
 from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust
 from sdexp.sim.mirror import reflect
-from sdexp.sim.sensors import decompose
+from sdexp.sensing import decompose
 from sdexp.sim.simulator import Simulator
 from sdexp.sim.statics import outer_rotors
 from tests.sim.test_shapes3d import surface_volume

@@ -7,7 +7,7 @@ import pytest
 from sdexp.eval.validate_fem import Beam, FreeBody, cantilever, structured_beam
 from sdexp.sim.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
 from sdexp.sim.quadratic import QUAD_2D, QUAD_3D, boundary_subfaces, p2_range_3d, quadratic_mesh
-from sdexp.sim.rotations import matrix_from_euler
+from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.structured import box_tets, box_tris
 
 
