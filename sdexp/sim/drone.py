@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from sdexp import conf
 from sdexp.cache import cached_arrays, key_of
 from sdexp.errors import UserError
 from sdexp.config import ELEMENTS
@@ -59,8 +59,7 @@ class Drone:
 
 
 def drone_names() -> list[str]:
-    conf = Path(__file__).resolve().parents[2] / "conf" / "drone"
-    return sorted(p.stem for p in conf.glob("*.yaml"))
+    return conf.names("drone")
 
 
 def make_shape(cfg) -> Shape:

@@ -5,9 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 
-from sdexp.cli import CONF_DIR
 from sdexp.errors import UserError
 from sdexp.model import generate
 from sdexp.model.dataset import KEYS, DATA_FORMAT, Dataset, _write_npz, dataset_key, dataset_spec, load_dataset
@@ -18,7 +17,7 @@ SMALL = ["drone=rod", "data=paper", "data.samples=600", "data.hold_seconds=0.5",
 
 
 def make_cfg(cache_dir, *overrides):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
         return compose(config_name="config", overrides=[*SMALL, f"cache_dir={cache_dir}", *overrides])
 
 
