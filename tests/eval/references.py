@@ -1,4 +1,5 @@
-"""Reduced configs of the control experiments and their stored reference metrics.
+"""Reduced configs of the control experiments and their stored reference metrics (test-only:
+the package ships none).
 
 The test suite runs every experiment below on a tiny rod (or star) model for fractions of a
 second and compares its metrics with ``results/reference/<experiment>.json``: two-sided for the
@@ -6,7 +7,7 @@ parts that involve no training (the rigid baselines, the simulator), one-sided f
 that do (the learned model, ours, the neural controller: "no worse than the reference").
 Regenerate the references after an intended change with
 
-    python -m sdexp.eval.references            # all, or: ... sota nsweep
+    python -m tests.eval.references            # all, or: ... sota nsweep
 """
 from __future__ import annotations
 
