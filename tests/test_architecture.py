@@ -13,6 +13,12 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_import_contracts_hold():
     # lint-imports of this interpreter on this checkout, not on an installed copy elsewhere
     run = subprocess.run([sys.executable, "-c", "import sys; from importlinter.cli import lint_imports_command; "
-                          "sys.exit(lint_imports_command())"], cwd=ROOT, capture_output=True, text=True,
+                          "sys.exit(lint_imports_command())", "--no-cache"], cwd=ROOT, capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_one_place_picks_the_matplotlib_backend():
+    root = ROOT / "sdexp"
+    found = [str(p.relative_to(root)) for p in root.rglob("*.py") if "matplotlib.use(" in p.read_text()]
+    assert found == ["figures.py"]

@@ -264,9 +264,8 @@ def confusion(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def confusion_plot(cm: pd.DataFrame, path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(1.2 + 0.45 * cm.shape[1], 1.2 + 0.4 * cm.shape[0]))
     ax.imshow(cm.to_numpy(), cmap="Blues")

@@ -74,9 +74,8 @@ def flight_table(flight: Flight, dyn) -> pd.DataFrame:
 
 def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path: Path, suptitle: str) -> None:
     """The paper's SOTA figure: (x, y, z) over time, one panel per flight, goal dashed."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     n = len(tables)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False)

@@ -11,7 +11,8 @@ from sdexp.sim.drone import build_drone, drone_names, face_normals
 
 
 def run(cfg, out_dir: Path) -> dict:
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
     from tqdm import tqdm
 
     names = list(cfg.experiment.params.get("drones") or drone_names())

@@ -95,9 +95,8 @@ def run(cfg, out_dir: Path) -> dict:
 
 
 def _plot(tab, pitch, fold_deg: float, boxes, rest_width: float, path: Path, drone: str, out: dict) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
     from matplotlib.patches import Rectangle
 
     t = tab["t"]
