@@ -14,6 +14,7 @@ from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
 from sdexp.sensing import SensorLayout
 from sdexp.sim.sensors import ImuPatches, build_imu_patches
 from sdexp.sim.shape import Shape
+from sdexp.sim.surface import boundary_faces, patch_faces
 
 MESH_FORMAT = 1
 LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
@@ -130,43 +131,6 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
 
     arrays = cached_arrays(cache_dir, key_of(f"mesh{shape.dim}d", MESH_FORMAT, payload), make)
     return arrays["points"], arrays["elems"].astype(np.int32)
-
-
-def boundary_faces(elems: np.ndarray) -> np.ndarray:
-    """Faces that belong to one element only, oriented outward (elements positively oriented)."""
-    if elems.shape[1] == 4:
-        a, b, c, d = elems.T
-        faces = np.concatenate([np.c_[b, c, d], np.c_[a, d, c], np.c_[a, b, d], np.c_[a, c, b]])
-    else:
-        a, b, c = elems.T
-        faces = np.concatenate([np.c_[a, b], np.c_[b, c], np.c_[c, a]])
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse.ravel()] == 1]
-
-
-def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted outward normals (3D: cross product / 2; 2D: rotated segment)."""
-    if faces.shape[1] == 3:
-        p0, p1, p2 = (points[faces[:, k]] for k in range(3))
-        return 0.5 * np.cross(p1 - p0, p2 - p0)
-    d = points[faces[:, 1]] - points[faces[:, 0]]
-    return np.c_[d[:, 1], -d[:, 0]]
-
-
-def patch_faces(points: np.ndarray, faces: np.ndarray, anchor: np.ndarray, normal: np.ndarray,
-                radius: float) -> np.ndarray:
-    """Indices of boundary faces on the anchor's side (normal within 60 deg) whose centroid
-    lies within ``radius``; at least the nearest such face."""
-    n = face_normals(points, faces)
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    side = n @ normal > 0.5
-    dist = np.linalg.norm(points[faces].mean(axis=1) - anchor, axis=1)
-    pick = np.flatnonzero(side & (dist <= radius))
-    if len(pick) == 0:
-        cand = np.flatnonzero(side)
-        pick = cand[[np.argmin(dist[cand])]] if len(cand) else np.array([], dtype=int)
-    return pick
 
 
 def _csr(lists: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

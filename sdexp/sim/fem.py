@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from sdexp.sim.native import library
 from sdexp.sim.quadratic import ROTATION_PER_POINT, p2_range_2d, p2_range_3d
 
 POLAR_ITERATIONS = 2
@@ -273,14 +274,21 @@ def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf):
     return inverted
 
 
+def corotated_kernel_3d():
+    """A ctypes function with the C signature of kernels.c's corotated_forces_3d: the compiled
+    one, or the numba cfunc where the C library could not be built (sdexp.sim.native)."""
+    lib = library()
+    if lib is None:
+        return corotated_cfunc_3d.ctypes
+    return lib.corotated_forces_3d
+
+
 def elastic_forces(model: FemModel, x: np.ndarray, q: np.ndarray | None = None,
                    kernel=None) -> np.ndarray:
     """Total elastic force on every vertex (nv, dim), for tests and the stability estimate
     (the simulator's loop fuses this with integration). ``q``: warm-start quaternions
     (model.n_rotations, 4), updated. ``kernel``: a C-signature linear 3D kernel, by default the
     compiled one; quadratic elements use the numba reference (kernels.c runs them in the step)."""
-    from sdexp.sim.native import corotated_kernel_3d
-
     fbuf = np.zeros((1,) + x.shape)
     if model.dim == 3:
         q = rest_quaternions(model.n_rotations) if q is None else q

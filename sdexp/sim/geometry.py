@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sdexp.sim.drone import RotorPatches, face_normals
+from sdexp.sim.drone import RotorPatches
+from sdexp.sim.surface import face_normals
 
 
 def wrench_matrix(rotor_pos: np.ndarray, rotor_dir: np.ndarray) -> np.ndarray:

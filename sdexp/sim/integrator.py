@@ -10,8 +10,8 @@ import ctypes
 import numba as nb
 import numpy as np
 
-from sdexp.sim.fem import FemModel, element_forces, rest_quaternions
-from sdexp.sim.native import Step, blocked, corotated_kernel_3d, library
+from sdexp.sim.fem import FemModel, corotated_kernel_3d, element_forces, rest_quaternions
+from sdexp.sim.native import Step, blocked, library
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")

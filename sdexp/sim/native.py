@@ -3,9 +3,10 @@ numba compiles on first use, and cached under a hash of the source, the flags an
 written to a temporary name and renamed, so a killed build leaves nothing half-written, and
 checked against the digest recorded at build time before it is loaded (a damaged one is rebuilt).
 
-Where no compiler works, the numba references (same arithmetic, about 3x slower) run instead
-and a warning says so; otherwise an INFO line names the compiled library. The two agree to 1e-10
-(tests/sim/test_fem.py: test_compiled_step_matches_the_numba_reference).
+Where no compiler works (``library()`` is None), the numba references (same arithmetic, about
+3x slower) run instead and a warning says so: sdexp.sim.fem.corotated_kernel_3d and the
+integrator's Body choose by that; otherwise an INFO line names the compiled library. The two
+agree to 1e-10 (tests/sim/test_fem.py: test_compiled_step_matches_the_numba_reference).
 """
 from __future__ import annotations
 
@@ -128,14 +129,3 @@ def blocked(rows, block: int, pad=0.0):
     out[:n] = rows
     out[n:] = pad
     return np.ascontiguousarray(np.moveaxis(out.reshape((nb, block) + rows.shape[1:]), 1, -1))
-
-
-def corotated_kernel_3d():
-    """A ctypes function with the C signature of kernels.c's corotated_forces_3d (compiled, or
-    the numba cfunc)."""
-    lib = library()
-    if lib is None:
-        from sdexp.sim.fem import corotated_cfunc_3d
-        return corotated_cfunc_3d.ctypes
-    return lib.corotated_forces_3d
-

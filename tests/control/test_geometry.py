@@ -3,7 +3,8 @@ forms of a uniform box, and their independence of where and how the body sits.""
 import numpy as np
 import pytest
 
-from sdexp.sim.drone import RotorPatches, boundary_faces
+from sdexp.sim.drone import RotorPatches
+from sdexp.sim.surface import boundary_faces
 from sdexp.sim.fem import build_fem
 from sdexp.sim.geometry import rigid_body, rotation_2d
 from sdexp.sensing.rotations import matrix_from_euler

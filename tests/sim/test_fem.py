@@ -121,8 +121,7 @@ def test_stiff_limit_follows_rigid_body_motion():
 
 
 def test_compiled_kernel_matches_the_numba_reference(block):
-    from sdexp.sim.fem import corotated_cfunc_3d
-    from sdexp.sim.native import corotated_kernel_3d
+    from sdexp.sim.fem import corotated_cfunc_3d, corotated_kernel_3d
 
     kernel = corotated_kernel_3d()
     assert kernel is not corotated_cfunc_3d.ctypes, "the C kernel did not build"
@@ -143,7 +142,8 @@ def test_compiled_step_matches_the_numba_reference(dim, threads, order):
     """kernels.c's advance (one OpenMP region per control step) against integrator.advance:
     a block spun and thrown onto the ground and into a box, with a rotor, gravity and both
     dampings, so every branch of the step runs; linear and quadratic elements."""
-    from sdexp.sim.drone import boundary_faces, build_rotors
+    from sdexp.sim.drone import build_rotors
+    from sdexp.sim.surface import boundary_faces
     from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
 
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)

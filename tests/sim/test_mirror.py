@@ -7,7 +7,8 @@ from omegaconf import OmegaConf
 
 from sdexp.config import NoiseConfig
 from sdexp.errors import UserError
-from sdexp.sim.drone import boundary_faces, build_drone, make_shape
+from sdexp.sim.drone import build_drone, make_shape
+from sdexp.sim.surface import boundary_faces
 from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust
 from sdexp.sim.mirror import reflect
 from sdexp.sensing import decompose

@@ -167,7 +167,7 @@ def test_stable_substep_of_quadratic_elements_is_near_the_limit():
 
 
 def test_boundary_subfaces_tile_the_corner_faces():
-    from sdexp.sim.drone import boundary_faces, face_normals
+    from sdexp.sim.surface import boundary_faces, face_normals
 
     pts, el = box_tets((2, 1, 2), (1.0, 0.5, 0.5))
     p2, e2 = quadratic_mesh(pts, el)
