@@ -50,11 +50,11 @@ def test_the_log_says_which_fem_kernels_run(tmp_path, caplog):
     (test_fem.py: test_without_a_compiler_the_numba_kernels_run)."""
     import logging
 
-    from sdexp.sim import native
+    from sdexp.sim.physics import native
 
     native.library.cache_clear()
     try:
-        with caplog.at_level(logging.INFO, logger="sdexp.sim.native"):
+        with caplog.at_level(logging.INFO, logger="sdexp.sim.physics.native"):
             assert native.library() is not None
         assert any("FEM kernels: compiled C" in r.getMessage() for r in caplog.records)
     finally:

@@ -26,7 +26,7 @@ import torch
 from sdexp.control.lqr import lqr_gain
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.sensing import State
-from sdexp.sim.geometry import hover_thrust, wrench_matrix
+from sdexp.sim.rigid.geometry import hover_thrust, wrench_matrix
 
 
 @dataclass

@@ -19,7 +19,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write
-from sdexp.sim.effects import Effect, patch_means, rotor_normals
+from sdexp.sim.physics.effects import Effect, patch_means, rotor_normals
 
 log = logging.getLogger(__name__)
 
@@ -286,7 +286,7 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     from sdexp.discrepancy.workflow import prepare
     from sdexp.parallel import run_spawned
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.effects import LIBRARY
+    from sdexp.sim.physics.effects import LIBRARY
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)

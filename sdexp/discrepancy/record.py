@@ -49,7 +49,7 @@ class Pilot:
     def __init__(self, drone, gravity: float, att_freq: float = 2.5, pos_freq: float = 0.7,
                  max_tilt: float = 0.3, dt: float = 0.01):
         self.dim = drone.dim
-        from sdexp.sim.effects import patch_means
+        from sdexp.sim.physics.effects import patch_means
         rest = drone.fem.rest
         m = drone.fem.mass
         c = m @ rest / m.sum()   # the centre of mass, not the vertex mean

@@ -8,7 +8,7 @@ import pandas as pd
 
 from sdexp.eval.bench_sim import load_drone_cfg
 from sdexp.sim.drone import build_drone, drone_names
-from sdexp.sim.surface import face_normals
+from sdexp.sim.mesh.surface import face_normals
 
 
 def run(cfg, out_dir: Path) -> dict:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, flight_table
-from sdexp.sim.statics import held_bend, outer_rotors
+from sdexp.sim.rigid.statics import held_bend, outer_rotors
 
 
 def folding_wings(r_hat: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sensing.rotations import euler_and_rates
-from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust
+from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust
 from sdexp.sensing import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many
@@ -117,7 +117,7 @@ def hover_centre(drone, data, sim_cfg) -> np.ndarray | float:
     if not data.get("around_hover"):
         return 0.0
     if data.get("hover", "rigid") == "shape":
-        from sdexp.sim.statics import shape_hover_thrust
+        from sdexp.sim.rigid.statics import shape_hover_thrust
         return shape_hover_thrust(drone, sim_cfg)
     return rest_hover_thrust(drone, float(sim_cfg["gravity"]))
 

@@ -9,12 +9,12 @@ from sdexp import conf
 from sdexp.cache import cached_arrays, key_of
 from sdexp.errors import UserError
 from sdexp.config import ELEMENTS
-from sdexp.sim.fem import FemModel, build_fem
-from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
+from sdexp.sim.physics.fem import FemModel, build_fem
+from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
 from sdexp.sensing import SensorLayout
 from sdexp.sim.sensors import ImuPatches, build_imu_patches
-from sdexp.sim.shape import Shape
-from sdexp.sim.surface import boundary_faces, patch_faces
+from sdexp.sim.mesh.shape import Shape
+from sdexp.sim.mesh.surface import boundary_faces, patch_faces
 
 MESH_FORMAT = 1
 LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
@@ -64,7 +64,7 @@ def drone_names() -> list[str]:
 
 
 def make_shape(cfg) -> Shape:
-    from sdexp.sim.shapes import SHAPES
+    from sdexp.sim.mesh.shapes import SHAPES
     if cfg.shape not in SHAPES:
         raise UserError(f"drone.shape = {cfg.shape!r} is unknown: choose one of {sorted(SHAPES)}")
     from sdexp.config import check_design
@@ -95,7 +95,7 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
             raise UserError(f"drone.mesh.layers = {layers}: the {shape.dim}D shape is not a plate; set it to 0")
         payload["layers"] = [layers, LAYERED_FORMAT]
     if planes:   # the whole-body meshes keep the keys they had before the option
-        from sdexp.sim.mirror import asymmetric_parts
+        from sdexp.sim.mesh.mirror import asymmetric_parts
         bad = asymmetric_parts(shape, planes)
         if bad:
             raise UserError(f"drone.mesh.mirror = {planes}: the design is not symmetric there, its "
@@ -104,19 +104,19 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
 
     def make() -> dict[str, np.ndarray]:
         if layers:
-            from sdexp.sim.mirror import AXES, reflect_all
+            from sdexp.sim.mesh.mirror import AXES, reflect_all
             try:
                 pts, el = reflect_all(*shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes)),
                                       planes)
             except ValueError as err:
                 raise UserError(f"drone.mesh.mirror = {planes}: {err}") from None
         elif shape.dim == 3:
-            from sdexp.sim.tetmesh import tet_mesh
+            from sdexp.sim.mesh.tetmesh import tet_mesh
 
             def tets(vertices, faces):
                 return tet_mesh(vertices, faces, mesh.edge_length, mesh.stop_energy, mesh.coarsen)
             if planes:
-                from sdexp.sim.mirror import AXES, symmetric_mesh
+                from sdexp.sim.mesh.mirror import AXES, symmetric_mesh
                 try:
                     cell = shape.cell_surface(tuple(AXES[p] for p in planes))
                 except ValueError as err:
@@ -125,7 +125,7 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
             else:
                 pts, el = tets(shape.vertices, shape.faces)
         else:
-            from sdexp.sim.trimesh import tri_mesh
+            from sdexp.sim.mesh.trimesh import tri_mesh
             pts, el = tri_mesh(shape.vertices, shape.faces, shape.holes, mesh.edge_length)
         return {"points": pts, "elems": el}
 

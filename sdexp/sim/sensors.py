@@ -31,7 +31,7 @@ class ImuPatches:
 # ------------------------------------------------------------------------------ building
 
 def build_imu_patches(points, boundary, shape, radius: float, name: str) -> tuple[ImuPatches, SensorLayout]:
-    from sdexp.sim.surface import patch_faces
+    from sdexp.sim.mesh.surface import patch_faces
 
     dim = shape.dim
     shared = shape.frame_imus.shape == shape.imus.shape and np.allclose(shape.frame_imus, shape.imus)

@@ -6,7 +6,7 @@ Actuation: the command is clipped to [-max_thrust, max_thrust], held back by the
 (a FIFO of whole control steps), perturbed by Gaussian rotor noise, and applied along each
 rotor patch's current surface normal for the whole interval.
 
-Effects (``sim.effects``, sdexp.sim.effects) hook in at the model (mass, stiffness, damping),
+Effects (``sim.effects``, sdexp.sim.physics.effects) hook in at the model (mass, stiffness, damping),
 the actuators (after the rotor noise), the body (external forces held over the control step)
 and the sensors (before the sensor noise). With no effects the step is what it was.
 """
@@ -21,9 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.drone import Drone
-from sdexp.sim.effects import build_effects, overrides
-from sdexp.sim.fem import stable_substep
-from sdexp.sim.integrator import Body, extent
+from sdexp.sim.physics.effects import build_effects, overrides
+from sdexp.sim.physics.fem import stable_substep
+from sdexp.sim.physics.integrator import Body, extent
 from sdexp.sensing import Readings, decompose, State
 from sdexp.sim.sensors import add_noise, read_imus
 

@@ -234,7 +234,7 @@ def test_thrust_range_narrows_the_holds_and_keys_the_cache(tmp_path):
 
 def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.geometry import rest_hover_thrust
+    from sdexp.sim.rigid.geometry import rest_hover_thrust
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]")
     assert cfg.data.around_hover
@@ -255,7 +255,7 @@ def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
 
 def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.statics import shape_hover_thrust
+    from sdexp.sim.rigid.statics import shape_hover_thrust
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
                    "data.hover=shape")
@@ -275,7 +275,7 @@ def test_obstacles_are_scenery_not_part_of_the_data(reference):
 
 def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkeypatch):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
+    from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
                    "data.deform_range=0.3", "data.deform_hold_seconds=0.5")

@@ -8,7 +8,7 @@ from sdexp.config import DroneConfig
 from sdexp.eval.bench_sim import load_drone_cfg
 from sdexp.config import drone_key
 from sdexp.sim.drone import make_shape, mesh_shape
-from sdexp.sim.surface import boundary_faces, face_normals
+from sdexp.sim.mesh.surface import boundary_faces, face_normals
 
 from tests.sim.test_mirror import mirror_gap
 

@@ -8,8 +8,8 @@ from sdexp.sensing.rotations import (average_rotations, euler_from_matrix, euler
                                  skew)
 from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
-from sdexp.sim.shape import Shape
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sim.mesh.shape import Shape
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 T = 0.1  # plate thickness
 

@@ -10,9 +10,9 @@ from scipy.sparse.csgraph import connected_components
 
 from sdexp import conf
 from sdexp.config import DroneConfig
-from sdexp.sim.placement import tree_imus
-from sdexp.sim.shapes.shapes2d import ROOT_RADIUS, SHAPES
-from sdexp.sim.trimesh import tri_mesh
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shapes.shapes2d import ROOT_RADIUS, SHAPES
+from sdexp.sim.mesh.trimesh import tri_mesh
 
 # Supplement B, table "2D models": size (x, y), rotors, sensors; the rod read as horizontal.
 TABLE = {

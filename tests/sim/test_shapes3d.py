@@ -5,9 +5,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from sdexp import conf
-from sdexp.sim.placement import tree_imus
-from sdexp.sim.shapes.shapes3d import SHAPES
-from sdexp.sim.tetmesh import tet_mesh
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shapes.shapes3d import SHAPES
+from sdexp.sim.mesh.tetmesh import tet_mesh
 
 NAMES = sorted(SHAPES)
 

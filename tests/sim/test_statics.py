@@ -3,8 +3,8 @@ import numpy as np
 from hydra import compose, initialize_config_module
 
 from sdexp.sim.drone import build_drone
-from sdexp.sim.geometry import rest_hover_thrust, rigid_body, wrench_matrix
-from sdexp.sim.statics import hold, shape_hover_thrust
+from sdexp.sim.rigid.geometry import rest_hover_thrust, rigid_body, wrench_matrix
+from sdexp.sim.rigid.statics import hold, shape_hover_thrust
 
 
 def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):

@@ -26,7 +26,7 @@ def reflect(points: np.ndarray, elems: np.ndarray, axis: int, tol: float) -> tup
     put exactly on the plane (a mesher keeps the cut flat only to its tolerance), shared by both
     halves, so the two halves are conforming by construction. Raises if the cell crosses the
     plane, a vertex move inverts an element, or the glued mesh still has a face on the plane."""
-    from sdexp.sim.surface import boundary_faces, face_normals
+    from sdexp.sim.mesh.surface import boundary_faces, face_normals
 
     points = np.array(points, dtype=np.float64)
     elems = np.asarray(elems, dtype=np.int64)

@@ -27,7 +27,7 @@ class Shape:
     frame_imus: np.ndarray        # (k, dim) IMU anchors whose averaged frame defines e (k=1: centre)
     frame_normals: np.ndarray     # (k, dim)
     # 3D plates: axes (0: x, 2: z) -> closed surface of the part on the positive side of the
-    # mirror planes through the centre normal to them (drone.mesh.mirror, sdexp.sim.mirror)
+    # mirror planes through the centre normal to them (drone.mesh.mirror, sdexp.sim.mesh.mirror)
     cell_surface: Optional[Callable[[tuple], tuple]] = None
     # 3D plates: (edge, layers, mirror axes) -> (points, tets) extruded through the thickness
     layered_mesh: Optional[Callable[[float, int, tuple], tuple]] = None

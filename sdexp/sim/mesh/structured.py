@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-from sdexp.sim.fem import signed_volumes
+from sdexp.sim.physics.fem import signed_volumes
 
 # Kuhn triangulation of the unit cube: one tet per permutation of the axes.
 _KUHN = [

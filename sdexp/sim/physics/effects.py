@@ -70,7 +70,7 @@ def overrides(effect: Effect, hook: str) -> bool:
 
 def rotor_normals(x: np.ndarray, rotors) -> np.ndarray:
     """(m, dim) unit area-weighted normals of the rotor patches at positions x (the thrust
-    directions of sdexp.sim.integrator.rotor_forces)."""
+    directions of sdexp.sim.physics.integrator.rotor_forces)."""
     f = rotors.faces
     if x.shape[1] == 3:
         u, w = x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]]
@@ -495,6 +495,6 @@ def build_effects(entries, physical: bool = False) -> list[Effect]:
             raise UserError(f"sim.effects[{k}] ({label}): {err}; allowed parameters "
                             f"{', '.join(allowed or [])}") from None
         if not isinstance(obj, Effect):
-            raise UserError(f"sim.effects[{k}]: {cls} is not an sdexp.sim.effects.Effect")
+            raise UserError(f"sim.effects[{k}]: {cls} is not an sdexp.sim.physics.effects.Effect")
         out.append(obj)
     return out

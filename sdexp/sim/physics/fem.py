@@ -1,5 +1,5 @@
 """Co-rotated linear elasticity (Mueller & Gross 2004) on tets (3D) and triangles (2D), linear
-here, quadratic in sdexp.sim.quadratic (``FemModel.order`` tells which a model has).
+here, quadratic in sdexp.sim.physics.quadratic (``FemModel.order`` tells which a model has).
 
 The element force is the linear-elastic force in the element's rotated frame: with
 F = Ds Dm^-1, R = polar(F), eps = sym(R^T F) - I and P = R (2 mu eps + lam tr(eps) I),
@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from sdexp.sim.native import library
-from sdexp.sim.quadratic import ROTATION_PER_POINT, p2_range_2d, p2_range_3d
+from sdexp.sim.physics.native import library
+from sdexp.sim.physics.quadratic import ROTATION_PER_POINT, p2_range_2d, p2_range_3d
 
 POLAR_ITERATIONS = 2
 
@@ -68,7 +68,7 @@ def build_fem(rest: np.ndarray, elems: np.ndarray, total_mass: float,
               youngs_modulus: float, poisson_ratio: float) -> FemModel:
     """Precompute rest quantities. Linear elements (ne, dim+1): mass lumped evenly to the
     vertices. Quadratic ones (ne, 10 | 6, quadratic.quadratic_mesh): HRZ-lumped."""
-    from sdexp.sim.quadratic import lumped_mass, nodes_per_element
+    from sdexp.sim.physics.quadratic import lumped_mass, nodes_per_element
 
     rest = np.ascontiguousarray(rest, dtype=np.float64)
     elems = np.ascontiguousarray(elems, dtype=np.int32)
@@ -276,7 +276,7 @@ def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf):
 
 def corotated_kernel_3d():
     """A ctypes function with the C signature of kernels.c's corotated_forces_3d: the compiled
-    one, or the numba cfunc where the C library could not be built (sdexp.sim.native)."""
+    one, or the numba cfunc where the C library could not be built (sdexp.sim.physics.native)."""
     lib = library()
     if lib is None:
         return corotated_cfunc_3d.ctypes

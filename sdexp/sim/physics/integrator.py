@@ -10,8 +10,8 @@ import ctypes
 import numba as nb
 import numpy as np
 
-from sdexp.sim.fem import FemModel, corotated_kernel_3d, element_forces, rest_quaternions
-from sdexp.sim.native import Step, blocked, library
+from sdexp.sim.physics.fem import FemModel, corotated_kernel_3d, element_forces, rest_quaternions
+from sdexp.sim.physics.native import Step, blocked, library
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
@@ -206,7 +206,7 @@ def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, mas
             deform_damping, gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
             weights, thrust, ext, dirs, fext):
     """Run n_sub substeps; one force buffer per thread in fbuf (nt, nv, dim). ``kernel``: the
-    C-signature 3D force kernel (sdexp.sim.native).
+    C-signature 3D force kernel (sdexp.sim.physics.native).
     Returns (max inverted elements seen, max squared speed)."""
     worst = 0
     vmax2 = 0.0
@@ -244,7 +244,7 @@ class Body:
         if pinned is not None:
             self.minv[pinned] = 0.0
         self.ext = np.zeros_like(self.x)
-        self.fext = np.zeros_like(self.x)   # effects' external forces (sdexp.sim.effects)
+        self.fext = np.zeros_like(self.x)   # effects' external forces (sdexp.sim.physics.effects)
         m = 0 if rotors is None else rotors.count
         self.dirs = np.zeros((m, d))
         self.rotors = _NO_ROTORS if rotors is None else (

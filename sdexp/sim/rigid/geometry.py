@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from sdexp.sim.drone import RotorPatches
-from sdexp.sim.surface import face_normals
+from sdexp.sim.mesh.surface import face_normals
 
 
 def wrench_matrix(rotor_pos: np.ndarray, rotor_dir: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from sdexp.config import NoiseConfig
-from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust, rigid_body
+from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body
 from sdexp.sensing import decompose
 from sdexp.sim.simulator import Simulator
 

@@ -7,7 +7,7 @@ Signature of every generator::
 ``size`` are the bounding lengths (x, y[, z]) from the paper's table, ``thickness`` the plate
 thickness (None: the y length), ``params`` shape-specific proportions (dict of floats).
 """
-from sdexp.sim.shapes.shapes2d import SHAPES as _SHAPES_2D
-from sdexp.sim.shapes.shapes3d import SHAPES as _SHAPES_3D
+from sdexp.sim.mesh.shapes.shapes2d import SHAPES as _SHAPES_2D
+from sdexp.sim.mesh.shapes.shapes3d import SHAPES as _SHAPES_3D
 
 SHAPES = {**_SHAPES_3D, **_SHAPES_2D}

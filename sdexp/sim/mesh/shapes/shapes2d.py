@@ -7,7 +7,7 @@ clockwise, so the body is always on the left of a segment and its outward normal
 segment direction turned clockwise.
 
 Rotors sit on the upper boundary (the part of the outline facing +Y) and push along its outward
-normal. Peripheral IMUs come from the placement rule in :mod:`sdexp.sim.placement`; the rule
+normal. Peripheral IMUs come from the placement rule in :mod:`sdexp.sim.mesh.placement`; the rule
 yields points on the sensor tree, which usually lie inside the body, so each is moved along +Y
 onto the upper boundary, keeping its x coordinate.
 """
@@ -18,8 +18,8 @@ from typing import Callable
 import contourpy
 import numpy as np
 
-from sdexp.sim.placement import tree_imus
-from sdexp.sim.shape import Shape
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shape import Shape
 
 # Sensor-tree root radius (m): merges a rotor right above the centre with the root, as the rod's
 # middle rotor is, instead of making it a node with a near-zero edge.

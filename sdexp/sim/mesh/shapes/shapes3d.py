@@ -24,8 +24,8 @@ from typing import Callable
 import numpy as np
 import triangle
 
-from sdexp.sim.placement import tree_imus
-from sdexp.sim.shape import Shape
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shape import Shape
 
 Inside = Callable[[np.ndarray], np.ndarray]   # (k, 2) planar points -> (k,) bool
 Profile = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # rho -> (g, dg/drho)
@@ -276,7 +276,7 @@ class _Plate:
     def cell_surface(self, axes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Closed surface of the part of the plate on the positive side of the mirror planes
         through the centre normal to ``axes`` (0: x, 2: z): the cell that, meshed and reflected
-        across them (``sdexp.sim.mirror``), gives a mesh exactly as symmetric as the design."""
+        across them (``sdexp.sim.mesh.mirror``), gives a mesh exactly as symmetric as the design."""
         cols = [{0: 0, 2: 1}[a] for a in axes]   # planar (x, z) columns of the cut axes
         opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if self.d.profile or self.d.taper else "p"
         return self._closed(*self._planar_cell(cols, opts))
@@ -312,7 +312,7 @@ class _Plate:
         normals through the thickness in ``layers`` layers, each prism cut into three tets
         (the diagonal of a side face from its lower-indexed bottom node, so neighbours agree).
         No slivers, so a larger stable step than fTetWild's mesh; deterministic. With ``axes``
-        only the cell on the positive side of the mirror planes (sdexp.sim.mirror reflects it)."""
+        only the cell on the positive side of the mirror planes (sdexp.sim.mesh.mirror reflects it)."""
         cols = [{0: 0, 2: 1}[a] for a in axes]
         area = edge ** 2 * np.sqrt(3) / 4 / self.scale.prod()   # in design coordinates
         planar, tris = self._planar_cell(cols, f"pq30a{area:.8f}", edge / np.sqrt(self.scale.prod()))
