@@ -18,17 +18,16 @@ from hydra.errors import HydraException, MissingConfigException, OverrideParseEx
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from sdexp.config import register, unknown_key_error
+from sdexp import conf
+from sdexp.config import unknown_key_error
 from sdexp.errors import EXIT_USER_ERROR, UserError, one_line
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-register()
 
 _started = False   # the task function was entered: errors after this are the run's, not Hydra's
 log = logging.getLogger("sdexp.cli")
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+@hydra.main(version_base="1.3", config_path=conf.SEARCH_PATH, config_name="config")
 def _main(cfg: DictConfig) -> None:
     global _started
     from sdexp.eval.experiments import run_experiment
@@ -115,7 +114,7 @@ def _unknown_param(key: str, args: list[str]) -> str:
     from sdexp.eval.experiments import param_defaults
     name = next((a.split("=", 1)[1] for a in args if a.startswith("experiment=")), None)
     if name is None:
-        defaults = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "config.yaml").defaults)
+        defaults = OmegaConf.to_container(conf.read("config").defaults)
         name = next((d["experiment"] for d in defaults if isinstance(d, dict) and "experiment" in d), "?")
     allowed = ", ".join(sorted(param_defaults(name))) or "none"
     return f"{key} is not a parameter of {name}: allowed {allowed}"

@@ -21,7 +21,7 @@ from omegaconf.errors import OmegaConfBaseException
 from sdexp.errors import UserError, one_line
 
 
-ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.fem)
+ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.physics.fem)
 
 
 @dataclass
@@ -30,7 +30,7 @@ class MeshConfig:
     stop_energy: float = 10.0  # fTetWild quality target (3D only); lower = better tets, slower
     coarsen: bool = False      # fTetWild drops every vertex it can while keeping the quality
     mirror: List[str] = field(default_factory=list)  # 3D: mesh one cell, reflect across x = 0 / z = 0
-                                                     # (sdexp.sim.mirror); [] = mesh the whole body
+                                                     # (sdexp.sim.mesh.mirror); [] = mesh the whole body
     layers: int = 0            # 3D: 0 = fTetWild tetrahedralises the closed surface; n >= 1 = the outline
                                # triangulated and extruded through the thickness in n layers (no slivers)
 
@@ -39,7 +39,7 @@ class MeshConfig:
 class DroneConfig:
     name: str = MISSING
     dim: int = 3                       # 3 (tets) or 2 (triangles, plane strain)
-    shape: str = MISSING               # geometry generator in sdexp.sim.shapes
+    shape: str = MISSING               # geometry generator in sdexp.sim.mesh.shapes
     size: List[float] = MISSING        # bounding lengths (x, y[, z]) in metres, y is "up"
     thickness: Optional[float] = None  # plate thickness when the shape is not a flat plate
     mass: float = 1.0                  # kg
@@ -75,7 +75,7 @@ class SimConfig:
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
     threads: int = 0                     # FEM kernel threads; 0 = auto (2 for big meshes)
     element: str = "quadratic"           # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
-    effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.effects), each {name|_target_, params}
+    effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.physics.effects), each {name|_target_, params}
 
 
 @dataclass
@@ -240,6 +240,13 @@ def register() -> None:
     # second get different folders (sdexp.eval.experiments.claim guards any folder reused)
     if not OmegaConf.has_resolver("sdexp.pid"):
         OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
+
+
+def drone_key(drone: dict) -> dict:
+    """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
+    its default is dropped, so a drone meshed as before keeps what was cached before the option."""
+    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k in ("mirror", "layers") and not v)}
+    return {**drone, "mesh": mesh}
 
 
 def _nonfinite(value: Any) -> bool:
@@ -484,5 +491,5 @@ def validate(cfg: DictConfig | Config) -> None:
            "flights >= 1, seconds > 0")
     _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
     check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
-    from sdexp.sim.effects import check_config_effects
+    from sdexp.sim.physics.effects import check_config_effects
     check_config_effects(s.effects)   # names, parameters and ranges, before the run starts

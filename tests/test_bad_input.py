@@ -8,16 +8,15 @@ import subprocess
 import sys
 
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 
-from sdexp.cli import CONF_DIR
 from sdexp.config import validate
 from sdexp.errors import EXIT_USER_ERROR, UserError
 from sdexp.eval.experiments import RUNNERS, check_params, param_defaults
 
 
 def make_cfg(*overrides):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
 
 

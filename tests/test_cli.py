@@ -2,15 +2,15 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError
 
-from sdexp.cli import CONF_DIR
 from sdexp.config import validate
 from sdexp.errors import UserError
 from sdexp.eval.experiments import RUNNERS, run_experiment
@@ -21,7 +21,7 @@ DRONES = ["bunny", "diamond", "donut", "elephant", "engine", "flower", "leaf", "
 
 
 def make_cfg(*overrides):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
 
 
@@ -139,7 +139,7 @@ def test_validate_fem_runs_shrunk_and_matches_the_stored_reference(tmp_path, cac
     metrics = run_experiment(cfg, tmp_path)
     assert (tmp_path / "cantilever.png").exists() and (tmp_path / "drones.png").exists()
     assert abs(metrics["rod_quadratic_compliance_error"]) < 0.05 and metrics["rod_linear_compliance_error"] < -0.2
-    reference = json.loads((CONF_DIR.parent / "results" / "validate_fem" / "metrics.json").read_text())
+    reference = json.loads((Path(__file__).resolve().parents[1] / "results" / "validate_fem" / "metrics.json").read_text())
     for key in ("rigid_rise_error", "sag_error_linear_structured_2D_2layers", "freq_error_linear_structured_2D_2layers",
                 "sag_error_linear_structured_3D_1layers", "freq_error_linear_structured_3D_1layers",
                 "sag_error_quadratic_structured_2D_1layers", "sag_error_quadratic_structured_3D_1layers",

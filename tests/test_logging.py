@@ -43,3 +43,19 @@ def test_no_print_in_the_library():
              for i, line in enumerate(p.read_text().splitlines(), 1)
              if re.match(r"\s*print\(", line) and "file=sys.stderr" not in line]
     assert found == []
+
+
+def test_the_log_says_which_fem_kernels_run(tmp_path, caplog):
+    """The compiled C kernels announce themselves (INFO); the numba fallback warns instead
+    (test_fem.py: test_without_a_compiler_the_numba_kernels_run)."""
+    import logging
+
+    from sdexp.sim.physics import native
+
+    native.library.cache_clear()
+    try:
+        with caplog.at_level(logging.INFO, logger="sdexp.sim.physics.native"):
+            assert native.library() is not None
+        assert any("FEM kernels: compiled C" in r.getMessage() for r in caplog.records)
+    finally:
+        native.library.cache_clear()

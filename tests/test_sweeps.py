@@ -7,18 +7,17 @@ import subprocess
 import sys
 
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from sdexp.cli import CONF_DIR
 from sdexp.parallel import available_cores, concurrent_jobs, fit_to_cores, job_cores
 
 TINY = ["experiment=gallery", "experiment.params.drones=[rod]"]   # a mesh and a plot: seconds
 
 
 def make_cfg(*overrides, hydra=False):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides), return_hydra_config=hydra)
 
 

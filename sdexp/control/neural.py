@@ -24,7 +24,7 @@ from torch import nn
 from sdexp.cache import atomic_write, build_lock, key_of
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
-from sdexp.sim.sensors import State
+from sdexp.sensing import State
 
 log = logging.getLogger(__name__)
 

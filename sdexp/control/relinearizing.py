@@ -42,7 +42,7 @@ import numpy as np
 from sdexp.control.lqr import lqr_gain
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
-from sdexp.sim.sensors import State
+from sdexp.sensing import State
 
 
 class RelinearizingLQR:

@@ -7,7 +7,7 @@ manipulator form, linearised by autograd at the hover fixed point, and LQR on it
 
 with M_f's columns the rotor thrust directions d_i and M_t's the torques r_i x d_i (the
 simulated rotors are counter-rotating pairs: no reaction torque, the b_i lambda_i term is 0).
-The Euler angles are sdexp's (R = Ry Rz Rx, sdexp.sim.rotations), so the second equation is
+The Euler angles are sdexp's (R = Ry Rz Rx, sdexp.sensing.rotations), so the second equation is
 solved in the world frame: e_ddot = E^-1 (w_dot_world - E_dot e_dot).
 
 :class:`RigidLQR` computes K once from a geometry (the paper's "LQR", rest shape) or, with
@@ -25,8 +25,8 @@ import torch
 
 from sdexp.control.lqr import lqr_gain
 from sdexp.control.tasks import Task, wrap_angle
-from sdexp.sim.sensors import State
-from sdexp.sim.geometry import hover_thrust, wrench_matrix
+from sdexp.sensing import State
+from sdexp.sim.rigid.geometry import hover_thrust, wrench_matrix
 
 
 @dataclass
@@ -64,7 +64,7 @@ def _torch_rotation(e: torch.Tensor) -> torch.Tensor:
 
 
 def _torch_rate_matrix(e: torch.Tensor) -> torch.Tensor:
-    """E(e): omega_world = E e_dot (sdexp.sim.rotations.euler_rate_matrix)."""
+    """E(e): omega_world = E e_dot (sdexp.sensing.rotations.euler_rate_matrix)."""
     cy, sy, cz, sz = torch.cos(e[1]), torch.sin(e[1]), torch.cos(e[2]), torch.sin(e[2])
     zero, one = torch.zeros_like(cy), torch.ones_like(cy)
     return torch.stack([torch.stack([cy * cz, zero, sy]),

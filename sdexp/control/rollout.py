@@ -29,6 +29,7 @@ the simulator, so a flight's numbers are the same bit for bit with it or without
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -36,9 +37,11 @@ from threadpoolctl import threadpool_limits
 from sdexp.control.lqr import LqrFailure
 from sdexp.config import FlightConfig
 from sdexp.control.tasks import Task, wrap_angle
-from sdexp.sim.rotations import tilt_from_euler
-from sdexp.sim.sensors import State, decompose
-from sdexp.sim.simulator import Simulator
+from sdexp.sensing import State, decompose
+from sdexp.sensing.rotations import tilt_from_euler
+
+if TYPE_CHECKING:   # the type only: fly calls the simulator it is handed (reset, step, state)
+    from sdexp.sim.simulator import Simulator
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """Tasks: what a controller is asked to do, as a goal state over time in the blocks of the
-decomposed state (s, e, p and their rates; sdexp.sim.sensors.State).
+decomposed state (s, e, p and their rates; sdexp.sensing.State).
 
 One :class:`Task` covers the paper's four kinds and their combinations:
   hover               target = start, no velocity;
@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-from sdexp.sim.sensors import State
+from sdexp.sensing import State
 
 
 def wrap_angle(a):

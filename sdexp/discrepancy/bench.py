@@ -19,7 +19,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write
-from sdexp.sim.effects import Effect, patch_means, rotor_normals
+from sdexp.sim.physics.effects import Effect, patch_means, rotor_normals
 
 log = logging.getLogger(__name__)
 
@@ -264,9 +264,8 @@ def confusion(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def confusion_plot(cm: pd.DataFrame, path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(1.2 + 0.45 * cm.shape[1], 1.2 + 0.4 * cm.shape[0]))
     ax.imshow(cm.to_numpy(), cmap="Blues")
@@ -287,7 +286,7 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     from sdexp.discrepancy.workflow import prepare
     from sdexp.parallel import run_spawned
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.effects import LIBRARY
+    from sdexp.sim.physics.effects import LIBRARY
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)

@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from sdexp.sim.effects import LIBRARY
+from sdexp.sim.physics.effects import LIBRARY
 from sdexp.errors import UserError
 
 

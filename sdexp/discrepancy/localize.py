@@ -119,9 +119,8 @@ def unexplained_cell(table: pd.DataFrame, train: pd.DataFrame, held: pd.DataFram
 
 
 def heatmap(table: pd.DataFrame, path, title: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     t = table[table.regime != "all"].copy()
     t["col"] = t.regime + ":" + t.bin.astype(str)

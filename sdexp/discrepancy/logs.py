@@ -8,7 +8,7 @@ Each ``<flight>.csv`` has a header row and one row per control step, columns in 
 
 - ``t``: time (s), strictly increasing, spaced 1 / sample_rate;
 - ``u0 .. u{m-1}``: the commanded thrust of each rotor (N) issued at t;
-- the sensor channels of the sensor pipeline (sdexp.sim.sensors.decompose) read at t:
+- the sensor channels of the sensor pipeline (sdexp.sensing.decompose) read at t:
   ``p_x p_y [p_z]``, ``e_x e_y e_z`` (2D: ``e``), ``s0 .. s{n-1}`` and their rates
   ``p_dot_*``, ``e_dot_*``, ``s_dot*``.
 
@@ -52,7 +52,7 @@ def angle_columns(names: list[str]) -> np.ndarray:
 
 
 def state_row(st) -> np.ndarray:
-    """A sdexp.sim.sensors.State as one row in channel_names order."""
+    """A sdexp.sensing.State as one row in channel_names order."""
     return np.concatenate([st.p, st.e, st.s, st.p_dot, st.e_dot, st.s_dot])
 
 

@@ -19,8 +19,9 @@ import numpy as np
 
 from sdexp.cache import cached_arrays, key_of
 from sdexp.discrepancy.logs import angle_columns, state_row
-from sdexp.sim.rotations import euler_rate_matrix, matrix_from_euler
-from sdexp.sim.sensors import decompose, read_imus
+from sdexp.sensing.rotations import euler_rate_matrix, matrix_from_euler
+from sdexp.sensing import decompose
+from sdexp.sim.sensors import read_imus
 
 BEND_FORMAT = 1
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from sdexp.discrepancy.logs import meta_for, state_row, write_flight, write_meta
 from sdexp.errors import UserError
-from sdexp.sim.rotations import matrix_from_euler
+from sdexp.sensing.rotations import matrix_from_euler
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class Pilot:
     def __init__(self, drone, gravity: float, att_freq: float = 2.5, pos_freq: float = 0.7,
                  max_tilt: float = 0.3, dt: float = 0.01):
         self.dim = drone.dim
-        from sdexp.sim.effects import patch_means
+        from sdexp.sim.physics.effects import patch_means
         rest = drone.fem.rest
         m = drone.fem.mass
         c = m @ rest / m.sum()   # the centre of mass, not the vertex mean
@@ -163,7 +163,7 @@ def plan_flight(drone, rng, seconds: float, dt: float, manoeuvres, home, ground:
 
 def fly(sim, pilot: Pilot, segs: list[Segment], dt: float, settle: float = 1.0):
     """Fly the plan; returns (t, u, y) rows and the failure (None if the flight survived)."""
-    from sdexp.sim.rotations import euler_from_matrix  # noqa: F401  (pilot uses e directly)
+    from sdexp.sensing.rotations import euler_from_matrix  # noqa: F401  (pilot uses e directly)
     home = segs[0].start
     t_rows, u_rows, y_rows = [], [], []
     plan = [("settle", home, home, np.zeros(sim.drone.num_rotors))] * int(round(settle / dt))

@@ -33,7 +33,7 @@ from sdexp.discrepancy.logs import read_logs
 from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.errors import UserError
-from sdexp.sim.drone import drone_key
+from sdexp.config import drone_key
 
 log = logging.getLogger(__name__)
 
@@ -260,9 +260,8 @@ def gap_table(r_before, r_after, sigma, r_floor, channels) -> pd.DataFrame:
 def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float) -> None:
     """Measured vs nominal vs fitted predictions on the held-out windows of the channels the
     fit improved most, strung along time."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     top = np.argsort(-(gap.rms_before - gap.rms_after).to_numpy())[:4]
     n = min(held.count, 12)

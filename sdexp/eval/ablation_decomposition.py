@@ -72,9 +72,8 @@ def combined_curve(trained, column: str) -> np.ndarray:
 
 
 def run(cfg, out_dir: Path) -> dict:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     from sdexp.model.dataset import load_dataset
 

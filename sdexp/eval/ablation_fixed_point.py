@@ -63,9 +63,8 @@ def run(cfg, out_dir: Path) -> dict:
 
 
 def _plot(tables: dict, target_x: float, path: Path, drone: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     levels = sorted({lv for _, lv in tables})

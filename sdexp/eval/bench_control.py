@@ -20,7 +20,7 @@ from sdexp.control.lqr import LqrFailure, lqr_gain
 from sdexp.control.tasks import Task
 from sdexp.eval.controllers import build, ours
 from sdexp.eval.flights import Setup
-from sdexp.sim.sensors import State
+from sdexp.sensing import State
 
 log = logging.getLogger(__name__)
 

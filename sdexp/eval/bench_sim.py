@@ -22,8 +22,8 @@ log = logging.getLogger(__name__)
 
 def load_drone_cfg(name: str):
     from sdexp.config import DroneConfig
-    path = Path(__file__).resolve().parents[2] / "conf" / "drone" / f"{name}.yaml"
-    return OmegaConf.merge(OmegaConf.structured(DroneConfig), OmegaConf.load(path))
+    from sdexp import conf
+    return OmegaConf.merge(OmegaConf.structured(DroneConfig), conf.read("drone", name))
 
 
 def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25) -> dict:

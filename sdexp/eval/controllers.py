@@ -12,8 +12,8 @@ from sdexp.control.lqr import state_weights
 from sdexp.control.neural import NeuralController, load_or_train_policy
 from sdexp.control.relinearizing import RelinearizingLQR
 from sdexp.control.rigid import RigidGeometry, RigidLQR
-from sdexp.sim.geometry import rigid_body, rotation_2d
-from sdexp.sim.rotations import matrix_from_euler
+from sdexp.sim.rigid.geometry import rigid_body, rotation_2d
+from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.simulator import Simulator
 
 CONTROLLERS = ("ours", "rigid_lqr", "geometry_lqr", "neural")

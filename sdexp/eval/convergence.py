@@ -33,12 +33,14 @@ import scipy.sparse.linalg as spla
 
 from sdexp.cache import cached_arrays, key_of
 from sdexp.errors import UserError
-from sdexp.sim.drone import build_drone, drone_key
-from sdexp.sim.fem import FemModel
-from sdexp.sim.geometry import hover_thrust, rigid_body
-from sdexp.sim.quadratic import EDGES_2D, EDGES_3D, QUAD_2D, QUAD_3D
-from sdexp.sim.sensors import decompose, read_imus
-from sdexp.sim.statics import outer_rotors
+from sdexp.config import drone_key
+from sdexp.sim.drone import build_drone
+from sdexp.sim.physics.fem import FemModel
+from sdexp.sim.rigid.geometry import hover_thrust, rigid_body
+from sdexp.sim.physics.quadratic import EDGES_2D, EDGES_3D, QUAD_2D, QUAD_3D
+from sdexp.sensing import decompose
+from sdexp.sim.sensors import read_imus
+from sdexp.sim.rigid.statics import outer_rotors
 
 FORMAT = 6   # 6: the load from the design's rotor anchors and normals (fixed_load)
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from sdexp import conf
 from sdexp.cache import atomic_write
 from sdexp.config import ELEMENTS, validate
 from sdexp.errors import UserError
@@ -42,8 +43,6 @@ RUNNERS = {
 }
 
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-
 # experiment.params entries that are themselves structured: (experiment, key) -> "module:dataclass"
 NESTED_PARAMS = {("validate_fem", "beam"): "sdexp.eval.validate_fem:Beam"}
 
@@ -66,10 +65,10 @@ PARAM_RANGES = {
 def param_defaults(name: str) -> dict:
     """The experiment's params as its conf/experiment/<name>.yaml declares them: the keys a run
     may set (every one, with its default), nothing else."""
-    path = CONF_DIR / "experiment" / f"{name}.yaml"
-    if not path.exists():
+    declared = conf.read("experiment", name)
+    if declared is None:
         return {}
-    params = OmegaConf.select(OmegaConf.load(path), "experiment.params")
+    params = OmegaConf.select(declared, "experiment.params")
     return dict(OmegaConf.to_container(params)) if params is not None else {}
 
 
@@ -164,7 +163,7 @@ def check_params(cfg: DictConfig) -> None:
         if key == "elements" and not set(value) <= set(ELEMENTS):
             raise UserError(f"{full} = {value!r}: allowed a list of {', '.join(ELEMENTS)}")
         if key in ("drones", "scaling_drone") and value is not None:
-            names = sorted(q.stem for q in (CONF_DIR / "drone").glob("*.yaml"))
+            names = conf.names("drone")
             for d in (value if isinstance(value, list) else [value]):
                 if d not in names:
                     raise UserError(f"{full}: drone {d!r} is unknown: choose from {', '.join(names)}")

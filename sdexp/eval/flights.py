@@ -94,10 +94,10 @@ def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path:
     """The paper's SOTA figure: (x, y, z) over time, one panel per flight, goal dashed. Panels
     share the task's whole time and one position scale (start and goal +-3 m; a flight that leaves it
     runs off the panel), so a flight that ended early reads as a short line ending in a cross."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
+
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     n = len(tables)
     cols = 2 if n > 2 else n

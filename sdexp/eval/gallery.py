@@ -7,11 +7,13 @@ import numpy as np
 import pandas as pd
 
 from sdexp.eval.bench_sim import load_drone_cfg
-from sdexp.sim.drone import build_drone, drone_names, face_normals
+from sdexp.sim.drone import build_drone, drone_names
+from sdexp.sim.mesh.surface import face_normals
 
 
 def run(cfg, out_dir: Path) -> dict:
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
     from tqdm import tqdm
 
     names = list(cfg.experiment.params.get("drones") or drone_names())

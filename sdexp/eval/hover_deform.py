@@ -67,9 +67,8 @@ def run(cfg, out_dir: Path) -> dict:
 
 
 def _plot(tab, a, dyn, settle: float, path: Path, drone: str, out: dict) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     sl = dyn.slices
     t = a["t"]

@@ -105,9 +105,8 @@ def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon:
 def acceleration_plot(data, rows, series, table, dt: float, seconds: float, path: Path) -> None:
     """``rows``: the dataset rows of ``series`` (acceleration_test); ``seconds`` of the longest
     held-out episode, ``dt`` between rows."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     ep = data.arrays["episode"][rows]
     ids, counts = np.unique(ep, return_counts=True)
@@ -164,7 +163,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
 
     from sdexp.model.generate import commands, hover_centre
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.sensors import decompose
+    from sdexp.sensing import decompose
     from sdexp.sim.simulator import Simulator
 
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
@@ -289,9 +288,8 @@ def state_errors(dyn: LearnedDynamics, X_hat: np.ndarray, X_true: np.ndarray) ->
 
 
 def rollout_plot(t, X_true, preds: dict, errs: dict, dyn, names, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     sl = dyn.slices
     show = [("p", 1, f"{names['p'][1]} (m)"), ("p", 0, f"{names['p'][0]} (m)"),

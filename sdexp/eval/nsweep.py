@@ -41,9 +41,8 @@ def run(cfg, out_dir: Path) -> dict:
 
 
 def _plot(table: pd.DataFrame, tables: dict, target: np.ndarray, path: Path, drone: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     ax = axes[0]

@@ -21,7 +21,7 @@ import numpy as np
 
 from sdexp.eval.flights import Setup, flight_table
 from sdexp.eval.sota import ending
-from sdexp.sim.statics import held_bend, outer_rotors
+from sdexp.sim.rigid.statics import held_bend, outer_rotors
 
 
 def folding_wings(r_hat: np.ndarray) -> np.ndarray:
@@ -101,9 +101,8 @@ def run(cfg, out_dir: Path) -> dict:
 
 
 def _plot(tab, pitch, fold_deg: float, boxes, rest_width: float, path: Path, drone: str, out: dict) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
     from matplotlib.patches import Rectangle
 
     t = tab["t"]

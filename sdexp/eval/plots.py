@@ -3,12 +3,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import pandas as pd
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+from sdexp.figures import pyplot
+
+plt = pyplot()
 
 
 def refinement_plot(table: pd.DataFrame, path: Path) -> None:

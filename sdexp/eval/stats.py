@@ -222,9 +222,8 @@ def metric_groups(metrics: list[str], min_share: int = 3) -> dict[str, list[tupl
 def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24) -> None:
     """One panel per metric group (numbers only): each group of jobs' mean with its confidence
     interval as error bars, one series per controller / prefix."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     nums = table[table["kind"] == "number"]
     quantities = metric_groups(list(dict.fromkeys(nums["metric"])))

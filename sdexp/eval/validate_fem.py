@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdexp.sim.fem import FemModel, build_fem, stable_substep
-from sdexp.sim.integrator import Body
-from sdexp.sim.quadratic import quadratic_mesh
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sim.physics.fem import FemModel, build_fem, stable_substep
+from sdexp.sim.physics.integrator import Body
+from sdexp.sim.physics.quadratic import quadratic_mesh
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +185,7 @@ def run(cfg, out_dir: Path) -> dict:
                 log.info(f"  {element} {dim}D {layers} layers, {len(el)} elements: sag error "
                          f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
     if p.get("drone_edge_length"):
-        from sdexp.sim.tetmesh import tet_mesh
+        from sdexp.sim.mesh.tetmesh import tet_mesh
         edge = float(p["drone_edge_length"])
         v, f = _beam_surface(beam)
         pts, el = tet_mesh(v, f, edge)

@@ -4,7 +4,7 @@ A dataset is a set of transitions, one per 10 ms control step, computed from sen
 only (noise and delay as configured; how they are generated: sdexp/model/generate.py):
 
   keys (arrays of float32, first axis N transitions):
-    s, s_dot        (N, n_s)   bend angles and rates           (sdexp.sim.sensors.State)
+    s, s_dot        (N, n_s)   bend angles and rates           (sdexp.sensing.State)
     e, e_dot        (N, n_e)   Euler angles and rates (n_e = 3 in 3D, 1 in 2D)
     p, p_dot        (N, dim)   position and velocity
     u               (N, m)     the commanded thrusts held during the step
@@ -50,7 +50,7 @@ from omegaconf import OmegaConf
 from sdexp.cache import atomic_write, build_lock, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
-from sdexp.sim.drone import drone_key
+from sdexp.config import drone_key
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ log = logging.getLogger(__name__)
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
 
-DATA_FORMAT = 2  # 2: continuous bend angle s (sdexp.sim.sensors)
+DATA_FORMAT = 2  # 2: continuous bend angle s (sdexp.sensing)
 # transitions per chunk (at least one episode's length): small enough to balance two workers
 # and lose little to a kill, big enough that few episodes are cut at a chunk's end
 CHUNK_SAMPLES = 4000

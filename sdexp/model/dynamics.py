@@ -1,6 +1,6 @@
 """The learned dynamics of Eq. 4 and its linearisation, Eq. 5-6.
 
-    x = (s, s_dot, e, e_dot, p, p_dot)          (sdexp.sim.sensors.State.x order)
+    x = (s, s_dot, e, e_dot, p, p_dot)          (sdexp.sensing.State.x order)
     f(x, u) = (s_dot, (d(s, s_dot, u) - s_dot) / alpha,
                e_dot, (g(s, s_dot, e, e_dot, u) - e_dot) / alpha,
                p_dot, (h(s, s_dot, e, e_dot, p_dot, u) - p_dot) / alpha)

@@ -33,9 +33,9 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from sdexp.errors import UserError
-from sdexp.sim.rotations import euler_and_rates
-from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust
-from sdexp.sim.sensors import Readings, SensorLayout, State, decompose
+from sdexp.sensing.rotations import euler_and_rates
+from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust
+from sdexp.sensing import Readings, SensorLayout, State, decompose
 
 # An episode that produces no transition (the drone fails in its first step from rest) this many
 # times in a row means the drone cannot be simulated at all; stop instead of looping forever.
@@ -58,7 +58,7 @@ def raw_state(r: Readings, st: State, layout: SensorLayout) -> tuple[np.ndarray,
     """The undecomposed state: (p, frame Euler angles, every peripheral IMU's world-frame Euler
     angles (2D: its angle)) and its rates. Angles are stored as read (yaw and 2D angles in
     (-pi, pi], not unwrapped); rates come from the gyroscopes by the chain rule
-    (sdexp.sim.rotations.euler_and_rates, compiled: 2 us instead of 35)."""
+    (sdexp.sensing.rotations.euler_and_rates, compiled: 2 us instead of 35)."""
     pi = layout.periph_idx
     if layout.dim == 2:
         ang, rate = r.rot[pi], r.omega[pi]
@@ -117,7 +117,7 @@ def hover_centre(drone, data, sim_cfg) -> np.ndarray | float:
     if not data.get("around_hover"):
         return 0.0
     if data.get("hover", "rigid") == "shape":
-        from sdexp.sim.statics import shape_hover_thrust
+        from sdexp.sim.rigid.statics import shape_hover_thrust
         return shape_hover_thrust(drone, sim_cfg)
     return rest_hover_thrust(drone, float(sim_cfg["gravity"]))
 

@@ -421,9 +421,8 @@ def history_table(trained: TrainedNets) -> pd.DataFrame:
 
 
 def loss_plot(trained: TrainedNets, path: Path, title: str = "training curves") -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from sdexp.figures import pyplot
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(6, 4))
     for (n, h), c in zip(trained.history.items(), ("tab:blue", "tab:orange", "tab:green", "tab:red")):

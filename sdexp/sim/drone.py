@@ -2,17 +2,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from sdexp import conf
 from sdexp.cache import cached_arrays, key_of
 from sdexp.errors import UserError
 from sdexp.config import ELEMENTS
-from sdexp.sim.fem import FemModel, build_fem
-from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
-from sdexp.sim.sensors import ImuPatches, SensorLayout, build_imu_patches
-from sdexp.sim.shape import Shape
+from sdexp.sim.physics.fem import FemModel, build_fem
+from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
+from sdexp.sensing import SensorLayout
+from sdexp.sim.sensors import ImuPatches, build_imu_patches
+from sdexp.sim.mesh.shape import Shape
+from sdexp.sim.mesh.surface import boundary_faces, patch_faces
 
 MESH_FORMAT = 1
 LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
@@ -58,12 +60,11 @@ class Drone:
 
 
 def drone_names() -> list[str]:
-    conf = Path(__file__).resolve().parents[2] / "conf" / "drone"
-    return sorted(p.stem for p in conf.glob("*.yaml"))
+    return conf.names("drone")
 
 
 def make_shape(cfg) -> Shape:
-    from sdexp.sim.shapes import SHAPES
+    from sdexp.sim.mesh.shapes import SHAPES
     if cfg.shape not in SHAPES:
         raise UserError(f"drone.shape = {cfg.shape!r} is unknown: choose one of {sorted(SHAPES)}")
     from sdexp.config import check_design
@@ -82,13 +83,6 @@ def make_shape(cfg) -> Shape:
     return shape
 
 
-def drone_key(drone: dict) -> dict:
-    """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
-    its default is dropped, so a drone meshed as before keeps what was cached before the option."""
-    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k in ("mirror", "layers") and not v)}
-    return {**drone, "mesh": mesh}
-
-
 def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``shape`` with the ``drone.mesh`` settings, through the cache."""
     planes = list(mesh.get("mirror", []))
@@ -101,7 +95,7 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
             raise UserError(f"drone.mesh.layers = {layers}: the {shape.dim}D shape is not a plate; set it to 0")
         payload["layers"] = [layers, LAYERED_FORMAT]
     if planes:   # the whole-body meshes keep the keys they had before the option
-        from sdexp.sim.mirror import asymmetric_parts
+        from sdexp.sim.mesh.mirror import asymmetric_parts
         bad = asymmetric_parts(shape, planes)
         if bad:
             raise UserError(f"drone.mesh.mirror = {planes}: the design is not symmetric there, its "
@@ -110,19 +104,19 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
 
     def make() -> dict[str, np.ndarray]:
         if layers:
-            from sdexp.sim.mirror import AXES, reflect_all
+            from sdexp.sim.mesh.mirror import AXES, reflect_all
             try:
                 pts, el = reflect_all(*shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes)),
                                       planes)
             except ValueError as err:
                 raise UserError(f"drone.mesh.mirror = {planes}: {err}") from None
         elif shape.dim == 3:
-            from sdexp.sim.tetmesh import tet_mesh
+            from sdexp.sim.mesh.tetmesh import tet_mesh
 
             def tets(vertices, faces):
                 return tet_mesh(vertices, faces, mesh.edge_length, mesh.stop_energy, mesh.coarsen)
             if planes:
-                from sdexp.sim.mirror import AXES, symmetric_mesh
+                from sdexp.sim.mesh.mirror import AXES, symmetric_mesh
                 try:
                     cell = shape.cell_surface(tuple(AXES[p] for p in planes))
                 except ValueError as err:
@@ -131,49 +125,12 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
             else:
                 pts, el = tets(shape.vertices, shape.faces)
         else:
-            from sdexp.sim.trimesh import tri_mesh
+            from sdexp.sim.mesh.trimesh import tri_mesh
             pts, el = tri_mesh(shape.vertices, shape.faces, shape.holes, mesh.edge_length)
         return {"points": pts, "elems": el}
 
     arrays = cached_arrays(cache_dir, key_of(f"mesh{shape.dim}d", MESH_FORMAT, payload), make)
     return arrays["points"], arrays["elems"].astype(np.int32)
-
-
-def boundary_faces(elems: np.ndarray) -> np.ndarray:
-    """Faces that belong to one element only, oriented outward (elements positively oriented)."""
-    if elems.shape[1] == 4:
-        a, b, c, d = elems.T
-        faces = np.concatenate([np.c_[b, c, d], np.c_[a, d, c], np.c_[a, b, d], np.c_[a, c, b]])
-    else:
-        a, b, c = elems.T
-        faces = np.concatenate([np.c_[a, b], np.c_[b, c], np.c_[c, a]])
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse.ravel()] == 1]
-
-
-def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted outward normals (3D: cross product / 2; 2D: rotated segment)."""
-    if faces.shape[1] == 3:
-        p0, p1, p2 = (points[faces[:, k]] for k in range(3))
-        return 0.5 * np.cross(p1 - p0, p2 - p0)
-    d = points[faces[:, 1]] - points[faces[:, 0]]
-    return np.c_[d[:, 1], -d[:, 0]]
-
-
-def patch_faces(points: np.ndarray, faces: np.ndarray, anchor: np.ndarray, normal: np.ndarray,
-                radius: float) -> np.ndarray:
-    """Indices of boundary faces on the anchor's side (normal within 60 deg) whose centroid
-    lies within ``radius``; at least the nearest such face."""
-    n = face_normals(points, faces)
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    side = n @ normal > 0.5
-    dist = np.linalg.norm(points[faces].mean(axis=1) - anchor, axis=1)
-    pick = np.flatnonzero(side & (dist <= radius))
-    if len(pick) == 0:
-        cand = np.flatnonzero(side)
-        pick = cand[[np.argmin(dist[cand])]] if len(cand) else np.array([], dtype=int)
-    return pick
 
 
 def _csr(lists: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ Actuation: the command is clipped to [-max_thrust, max_thrust], held back by the
 (a FIFO of whole control steps), perturbed by Gaussian rotor noise, and applied along each
 rotor patch's current surface normal for the whole interval.
 
-Effects (``sim.effects``, sdexp.sim.effects) hook in at the model (mass, stiffness, damping),
+Effects (``sim.effects``, sdexp.sim.physics.effects) hook in at the model (mass, stiffness, damping),
 the actuators (after the rotor noise), the body (external forces held over the control step)
 and the sensors (before the sensor noise). With no effects the step is what it was.
 """
@@ -21,10 +21,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.drone import Drone
-from sdexp.sim.effects import build_effects, overrides
-from sdexp.sim.fem import stable_substep
-from sdexp.sim.integrator import Body, extent
-from sdexp.sim.sensors import Readings, add_noise, decompose, read_imus, State
+from sdexp.sim.physics.effects import build_effects, overrides
+from sdexp.sim.physics.fem import stable_substep
+from sdexp.sim.physics.integrator import Body, extent
+from sdexp.sensing import Readings, decompose, State
+from sdexp.sim.sensors import add_noise, read_imus
 
 
 def _plain(cfg):
@@ -103,7 +104,7 @@ class Simulator:
         rotations warm-started at ``rotation`` (3x3, 3D; else identity), and the actuation chain
         (output delay, effect states such as motor lag) replayed with the past commands
         ``history`` (oldest first) without moving the body."""
-        from sdexp.sim.rotations import quat_from_matrix
+        from sdexp.sensing.rotations import quat_from_matrix
         self.reset()
         self.body.x[:] = x
         self.body.v[:] = v

@@ -3,11 +3,12 @@ forms of a uniform box, and their independence of where and how the body sits.""
 import numpy as np
 import pytest
 
-from sdexp.sim.drone import RotorPatches, boundary_faces
-from sdexp.sim.fem import build_fem
-from sdexp.sim.geometry import rigid_body, rotation_2d
-from sdexp.sim.rotations import matrix_from_euler
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sim.drone import RotorPatches
+from sdexp.sim.mesh.surface import boundary_faces
+from sdexp.sim.physics.fem import build_fem
+from sdexp.sim.rigid.geometry import rigid_body, rotation_2d
+from sdexp.sensing.rotations import matrix_from_euler
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 LENGTHS = (2.0, 0.4, 1.0)
 ORIGIN = np.array([1.0, 2.0, -3.0])          # box corner; the centre is ORIGIN + LENGTHS / 2

@@ -12,7 +12,7 @@ from sdexp.control.rollout import arena, fly, metrics, tilt
 from sdexp.control.tasks import Task
 from sdexp.eval.controllers import build, geometry_of
 from sdexp.sim.drone import build_drone
-from sdexp.sim.rotations import matrix_from_euler
+from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.simulator import Simulator
 from tests.test_cli import make_cfg
 

@@ -8,7 +8,7 @@ from sdexp.control import neural
 from sdexp.control.neural import POLICY_KEYS, NeuralController, Policy, load_or_train_policy, train_policy
 from sdexp.control.tasks import Task
 from sdexp.model.dynamics import LearnedDynamics
-from sdexp.sim.sensors import State
+from sdexp.sensing import State
 from tests.model.test_dynamics import random_nets
 
 GAIN = 20.0

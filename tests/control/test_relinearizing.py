@@ -9,7 +9,7 @@ import scipy.linalg
 from sdexp.control.lqr import LqrFailure, state_weights
 from sdexp.control.relinearizing import RelinearizingLQR
 from sdexp.control.tasks import Task
-from sdexp.sim.sensors import State
+from sdexp.sensing import State
 
 G, MASS, J, ARM = 9.81, 1.0, 0.05, 0.25
 DT = 0.01

@@ -8,8 +8,8 @@ import torch
 from sdexp.control.rigid import (RigidGeometry, RigidLQR, _torch_rate_matrix, _torch_rotation, linearize_rigid,
                                  rigid_dynamics)
 from sdexp.control.tasks import Task
-from sdexp.sim.rotations import euler_from_matrix, euler_rate_matrix, euler_rates, matrix_from_euler, skew
-from sdexp.sim.sensors import State
+from sdexp.sensing.rotations import euler_from_matrix, euler_rate_matrix, euler_rates, matrix_from_euler, skew
+from sdexp.sensing import State
 
 G = 9.81
 UP3 = np.array([0.0, 1.0, 0.0])

@@ -10,9 +10,9 @@ import pytest
 from sdexp.control.rollout import FrameRecorder, fly, metrics
 from sdexp.eval import animation
 from sdexp.eval.experiments import run_experiment
-from sdexp.eval.references import reduced_overrides
-from sdexp.sim.drone import boundary_faces
-from sdexp.sim.quadratic import quadratic_mesh
+from tests.eval.references import reduced_overrides
+from sdexp.sim.mesh.surface import boundary_faces
+from sdexp.sim.physics.quadratic import quadratic_mesh
 from tests.test_cli import make_cfg
 
 imageio = pytest.importorskip("imageio.v3")

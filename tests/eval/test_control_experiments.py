@@ -1,6 +1,6 @@
 """Every control experiment runs reduced (a tiny rod or star model, fractions of a second of
-flight; sdexp.eval.references), writes its tables and plots, and matches the stored reference
-metrics in results/reference/ (regenerate: python -m sdexp.eval.references)."""
+flight; tests/eval/references.py), writes its tables and plots, and matches the stored reference
+metrics in results/reference/ (regenerate: python -m tests.eval.references)."""
 import json
 
 import numpy as np
@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from sdexp.eval.experiments import run_experiment
-from sdexp.eval.references import REFERENCE_DIR, compare, reduced_overrides
+from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
 from tests.test_cli import make_cfg
 
 

@@ -5,9 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 
-from sdexp.cli import CONF_DIR
 from sdexp.errors import UserError
 from sdexp.model import generate
 from sdexp.model.dataset import KEYS, DATA_FORMAT, Dataset, _write_npz, dataset_key, dataset_spec, load_dataset
@@ -18,7 +17,7 @@ SMALL = ["drone=rod", "data=paper", "data.samples=600", "data.hold_seconds=0.5",
 
 
 def make_cfg(cache_dir, *overrides):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
         return compose(config_name="config", overrides=[*SMALL, f"cache_dir={cache_dir}", *overrides])
 
 
@@ -198,8 +197,8 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
     """3D: the peripheral IMUs' world Euler angles and their chain-rule rates, on readings of
     IMUs spinning at constant angular velocity (central differences as the reference)."""
     from sdexp.model.generate import raw_state
-    from sdexp.sim.rotations import euler_from_matrix, euler_rates, exp_so3
-    from sdexp.sim.sensors import Readings, SensorLayout, decompose
+    from sdexp.sensing.rotations import euler_from_matrix, euler_rates, exp_so3
+    from sdexp.sensing import Readings, SensorLayout, decompose
 
     rng = np.random.default_rng(0)
     k = 5                                            # IMU 0 is the frame, 1..4 peripheral
@@ -215,7 +214,7 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
 
     raw, raw_dot = raw_at(0.3)
     assert raw.shape == raw_dot.shape == (3 + 3 + 4 * 3,)
-    R = exp_so3(w * 0.3) @ R0                         # the convention of sdexp.sim.rotations
+    R = exp_so3(w * 0.3) @ R0                         # the convention of sdexp.sensing.rotations
     np.testing.assert_allclose(raw[6:], euler_from_matrix(R[1:]).ravel(), atol=1e-12)
     np.testing.assert_allclose(raw_dot[6:], euler_rates(euler_from_matrix(R[1:]), w[1:]).ravel(), atol=1e-9)
     h = 1e-6
@@ -235,7 +234,7 @@ def test_thrust_range_narrows_the_holds_and_keys_the_cache(tmp_path):
 
 def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.geometry import rest_hover_thrust
+    from sdexp.sim.rigid.geometry import rest_hover_thrust
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]")
     assert cfg.data.around_hover
@@ -256,7 +255,7 @@ def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
 
 def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.statics import shape_hover_thrust
+    from sdexp.sim.rigid.statics import shape_hover_thrust
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
                    "data.hover=shape")
@@ -276,7 +275,7 @@ def test_obstacles_are_scenery_not_part_of_the_data(reference):
 
 def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkeypatch):
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
+    from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
 
     cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
                    "data.deform_range=0.3", "data.deform_hold_seconds=0.5")

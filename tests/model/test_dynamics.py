@@ -10,7 +10,7 @@ from sdexp.model.dynamics import LearnedDynamics, state_sizes
 from sdexp.model.networks import ResidualMLP
 from sdexp.model.training import DECOMPOSED, design
 from tests.model.test_networks import synthetic_dataset
-from sdexp.eval.references import SHRUNK  # one shrunk model for every experiment test
+from tests.eval.references import SHRUNK  # one shrunk model for every experiment test
 
 ALPHA = 0.01
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from sdexp.eval.convergence import richardson, static_displacement, stiffness
-from sdexp.sim.fem import build_fem, elastic_forces
-from sdexp.sim.quadratic import quadratic_mesh
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sim.physics.fem import build_fem, elastic_forces
+from sdexp.sim.physics.quadratic import quadratic_mesh
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sdexp.errors import UserError
-from sdexp.sim.effects import Effect, LIBRARY, build_effects, vertex_areas
-from sdexp.sim.rotations import quat_from_matrix  # noqa: F401  (set_state uses it)
+from sdexp.sim.physics.effects import Effect, LIBRARY, build_effects, vertex_areas
+from sdexp.sensing.rotations import quat_from_matrix  # noqa: F401  (set_state uses it)
 from sdexp.sim.simulator import Simulator
 from tests.sim.test_sensors import beam_drone_2d, plate_drone
 from tests.sim.test_simulator import QUIET, noise_cfg, sim_cfg

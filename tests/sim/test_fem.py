@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from sdexp.eval.validate_fem import Beam, FreeBody, cantilever, stiff_plate_under_thrust, structured_beam
-from sdexp.sim.integrator import Body, damp_deformation
-from sdexp.sim.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
-from sdexp.sim.rotations import matrix_from_euler
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sim.physics.integrator import Body, damp_deformation
+from sdexp.sim.physics.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
+from sdexp.sensing.rotations import matrix_from_euler
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 
 @pytest.fixture(scope="module")
@@ -121,8 +121,7 @@ def test_stiff_limit_follows_rigid_body_motion():
 
 
 def test_compiled_kernel_matches_the_numba_reference(block):
-    from sdexp.sim.fem import corotated_cfunc_3d
-    from sdexp.sim.native import corotated_kernel_3d
+    from sdexp.sim.physics.fem import corotated_cfunc_3d, corotated_kernel_3d
 
     kernel = corotated_kernel_3d()
     assert kernel is not corotated_cfunc_3d.ctypes, "the C kernel did not build"
@@ -143,8 +142,9 @@ def test_compiled_step_matches_the_numba_reference(dim, threads, order):
     """kernels.c's advance (one OpenMP region per control step) against integrator.advance:
     a block spun and thrown onto the ground and into a box, with a rotor, gravity and both
     dampings, so every branch of the step runs; linear and quadratic elements."""
-    from sdexp.sim.drone import boundary_faces, build_rotors
-    from sdexp.sim.quadratic import boundary_subfaces, quadratic_mesh
+    from sdexp.sim.drone import build_rotors
+    from sdexp.sim.mesh.surface import boundary_faces
+    from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
 
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)
     if dim == 3:
@@ -184,7 +184,7 @@ def test_compiled_step_matches_the_numba_reference(dim, threads, order):
 
 def test_without_a_compiler_the_numba_kernels_run(block, tmp_path, monkeypatch):
     """No working C compiler: a warning, no half-built library left, and bodies still step."""
-    from sdexp.sim import native
+    from sdexp.sim.physics import native
 
     monkeypatch.setenv("SDEXP_CACHE", str(tmp_path))
     monkeypatch.setenv("CC", "false")
@@ -262,7 +262,7 @@ def test_deformation_damping_stops_vibration_not_flight(block):
 def test_a_damaged_compiled_kernel_is_rebuilt_not_loaded(tmp_path, monkeypatch):
     """A truncated library would crash the process when loaded (bus error): the digest recorded
     at build time catches it first and the library is built again."""
-    from sdexp.sim import native
+    from sdexp.sim.physics import native
 
     monkeypatch.setenv("SDEXP_CACHE", str(tmp_path))
     so = native._library_path(tmp_path)

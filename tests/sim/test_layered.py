@@ -6,7 +6,9 @@ from omegaconf import OmegaConf
 
 from sdexp.config import DroneConfig
 from sdexp.eval.bench_sim import load_drone_cfg
-from sdexp.sim.drone import boundary_faces, drone_key, face_normals, make_shape, mesh_shape
+from sdexp.config import drone_key
+from sdexp.sim.drone import make_shape, mesh_shape
+from sdexp.sim.mesh.surface import boundary_faces, face_normals
 
 from tests.sim.test_mirror import mirror_gap
 

@@ -7,12 +7,13 @@ from omegaconf import OmegaConf
 
 from sdexp.config import NoiseConfig
 from sdexp.errors import UserError
-from sdexp.sim.drone import boundary_faces, build_drone, make_shape
-from sdexp.sim.geometry import deformation_patterns, rest_hover_thrust
-from sdexp.sim.mirror import reflect
-from sdexp.sim.sensors import decompose
+from sdexp.sim.drone import build_drone, make_shape
+from sdexp.sim.mesh.surface import boundary_faces
+from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust
+from sdexp.sim.mesh.mirror import reflect
+from sdexp.sensing import decompose
 from sdexp.sim.simulator import Simulator
-from sdexp.sim.statics import outer_rotors
+from sdexp.sim.rigid.statics import outer_rotors
 from tests.sim.test_shapes3d import surface_volume
 from tests.test_cli import make_cfg
 

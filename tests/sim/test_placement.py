@@ -1,7 +1,7 @@
 """The sensor placement rule of supplement D on layouts whose answer is known by hand."""
 import numpy as np
 
-from sdexp.sim.placement import rotor_tree, tree_imus
+from sdexp.sim.mesh.placement import rotor_tree, tree_imus
 
 
 def test_flower_gets_one_imu_per_petal_near_the_tip():

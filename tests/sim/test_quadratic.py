@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from sdexp.eval.validate_fem import Beam, FreeBody, cantilever, structured_beam
-from sdexp.sim.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
-from sdexp.sim.quadratic import QUAD_2D, QUAD_3D, boundary_subfaces, p2_range_3d, quadratic_mesh
-from sdexp.sim.rotations import matrix_from_euler
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sim.physics.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
+from sdexp.sim.physics.quadratic import QUAD_2D, QUAD_3D, boundary_subfaces, p2_range_3d, quadratic_mesh
+from sdexp.sensing.rotations import matrix_from_euler
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 
 def p2_block(dim, E=5000.0):
@@ -167,7 +167,7 @@ def test_stable_substep_of_quadratic_elements_is_near_the_limit():
 
 
 def test_boundary_subfaces_tile_the_corner_faces():
-    from sdexp.sim.drone import boundary_faces, face_normals
+    from sdexp.sim.mesh.surface import boundary_faces, face_normals
 
     pts, el = box_tets((2, 1, 2), (1.0, 0.5, 0.5))
     p2, e2 = quadratic_mesh(pts, el)

@@ -4,11 +4,12 @@ import pytest
 
 from sdexp.config import DroneConfig
 from sdexp.sim.drone import assemble_drone
-from sdexp.sim.rotations import (average_rotations, euler_from_matrix, euler_rates, matrix_from_euler,
+from sdexp.sensing.rotations import (average_rotations, euler_from_matrix, euler_rates, matrix_from_euler,
                                  skew)
-from sdexp.sim.sensors import decompose, read_imus
-from sdexp.sim.shape import Shape
-from sdexp.sim.structured import box_tets, box_tris
+from sdexp.sensing import decompose
+from sdexp.sim.sensors import read_imus
+from sdexp.sim.mesh.shape import Shape
+from sdexp.sim.mesh.structured import box_tets, box_tris
 
 T = 0.1  # plate thickness
 

@@ -1,7 +1,6 @@
 """The 2D drones (supplement B) and their meshes, each as configured in conf/drone/."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,12 +8,12 @@ from omegaconf import OmegaConf
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from sdexp import conf
 from sdexp.config import DroneConfig
-from sdexp.sim.placement import tree_imus
-from sdexp.sim.shapes.shapes2d import ROOT_RADIUS, SHAPES
-from sdexp.sim.trimesh import tri_mesh
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shapes.shapes2d import ROOT_RADIUS, SHAPES
+from sdexp.sim.mesh.trimesh import tri_mesh
 
-CONF = Path(__file__).resolve().parents[2] / "conf" / "drone"
 # Supplement B, table "2D models": size (x, y), rotors, sensors; the rod read as horizontal.
 TABLE = {
     "engine": ((1.90, 2.16), 6, 6),
@@ -27,7 +26,7 @@ TABLE = {
 
 
 def _config(name):
-    return OmegaConf.merge(OmegaConf.structured(DroneConfig), OmegaConf.load(CONF / f"{name}.yaml"))
+    return OmegaConf.merge(OmegaConf.structured(DroneConfig), conf.read("drone", name))
 
 
 def _make(cfg):

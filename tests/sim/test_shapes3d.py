@@ -1,20 +1,19 @@
 """The six 3D drones of the paper's table: surfaces, anchors, sensor placement, tet meshes."""
-from pathlib import Path
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from sdexp.sim.placement import tree_imus
-from sdexp.sim.shapes.shapes3d import SHAPES
-from sdexp.sim.tetmesh import tet_mesh
+from sdexp import conf
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shapes.shapes3d import SHAPES
+from sdexp.sim.mesh.tetmesh import tet_mesh
 
-CONF = Path(__file__).resolve().parents[2] / "conf" / "drone"
 NAMES = sorted(SHAPES)
 
 
 def drone_cfg(name):
-    return OmegaConf.load(CONF / f"{name}.yaml")
+    return conf.read("drone", name)
 
 
 def make(name, **override):

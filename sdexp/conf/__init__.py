@@ -1,0 +1,40 @@
+"""The configs (Hydra's primary config and its groups), shipped inside the package so that any
+install and any working directory find them: Hydra reads them from ``SEARCH_PATH`` and the code
+through :func:`names` and :func:`read`, never by a path relative to the source tree.
+
+Importing it registers the schema (``base_config`` in config.yaml's defaults list) and the
+resolvers the files use, so whatever composes them (the cli, a test's compose) has them."""
+from __future__ import annotations
+
+from importlib.resources import files
+
+from omegaconf import DictConfig, OmegaConf
+
+from sdexp.config import register
+
+register()
+
+SEARCH_PATH = "pkg://sdexp.conf"
+MODULE = "sdexp.conf"
+
+
+def _file(*parts: str):
+    node = files(MODULE)
+    for part in parts:
+        node = node.joinpath(part)
+    return node
+
+
+def names(group: str) -> list[str]:
+    """The options of a config group (its .yaml files), sorted."""
+    return sorted(f.name[:-len(".yaml")] for f in _file(group).iterdir() if f.name.endswith(".yaml"))
+
+
+def read(*parts: str) -> DictConfig | None:
+    """The file ``<parts...>.yaml`` as written (no defaults list applied), or None if there is
+    none: ``read("drone", "flower")``, ``read("config")``."""
+    f = _file(*parts[:-1], f"{parts[-1]}.yaml")
+    if not f.is_file():
+        return None
+    with f.open("r", encoding="utf-8") as stream:
+        return OmegaConf.load(stream)

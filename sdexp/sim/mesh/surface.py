@@ -1,0 +1,44 @@
+"""Surface helpers on a volume mesh: its boundary faces, their normals, and the patch of faces
+around an anchor (where a rotor pushes, where an IMU sits). The drone assembler, the mirror and
+the sensors use them; they import nothing of the simulator.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def boundary_faces(elems: np.ndarray) -> np.ndarray:
+    """Faces that belong to one element only, oriented outward (elements positively oriented)."""
+    if elems.shape[1] == 4:
+        a, b, c, d = elems.T
+        faces = np.concatenate([np.c_[b, c, d], np.c_[a, d, c], np.c_[a, b, d], np.c_[a, c, b]])
+    else:
+        a, b, c = elems.T
+        faces = np.concatenate([np.c_[a, b], np.c_[b, c], np.c_[c, a]])
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[counts[inverse.ravel()] == 1]
+
+
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted outward normals (3D: cross product / 2; 2D: rotated segment)."""
+    if faces.shape[1] == 3:
+        p0, p1, p2 = (points[faces[:, k]] for k in range(3))
+        return 0.5 * np.cross(p1 - p0, p2 - p0)
+    d = points[faces[:, 1]] - points[faces[:, 0]]
+    return np.c_[d[:, 1], -d[:, 0]]
+
+
+def patch_faces(points: np.ndarray, faces: np.ndarray, anchor: np.ndarray, normal: np.ndarray,
+                radius: float) -> np.ndarray:
+    """Indices of boundary faces on the anchor's side (normal within 60 deg) whose centroid
+    lies within ``radius``; at least the nearest such face."""
+    n = face_normals(points, faces)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    side = n @ normal > 0.5
+    dist = np.linalg.norm(points[faces].mean(axis=1) - anchor, axis=1)
+    pick = np.flatnonzero(side & (dist <= radius))
+    if len(pick) == 0:
+        cand = np.flatnonzero(side)
+        pick = cand[[np.argmin(dist[cand])]] if len(cand) else np.array([], dtype=int)
+    return pick

@@ -1,0 +1,500 @@
+"""Physical effects beyond the paper's simulator (which models rotor normal force only), and the
+plugin protocol through which a user adds their own.
+
+``sim.effects`` is a list of entries, each either ``{name: <library name>, <param>: value}`` or
+``{_target_: package.module.Class, <param>: value}``. :func:`build_effects` turns the list into
+objects; the :class:`Simulator` calls their hooks:
+
+- ``modify_model(fem, damping, drone) -> (fem, damping)``: once, before the stable substep is
+  computed (mass, stiffness, damping changes);
+- ``setup(sim)``: once, after the model is final (precompute vertex sets, areas);
+- ``reset(sim)``: at every reset / re-initialisation (internal states such as motor speed);
+- ``actuate(thrust, sim) -> thrust``: commanded -> applied thrust, once per control step, after
+  the output delay FIFO and the rotor noise;
+- ``body_forces(sim, f)``: add external forces (N) on the vertices into ``f`` (nv, dim), given
+  the state at the start of the control step; held over its substeps;
+- ``sense(readings, sim) -> readings``: the IMU readings, before the sensor noise.
+
+Why body forces once per control step: every force here changes on the time scale of the
+body's motion (drag time constants m/(c A |v|) of a second or more, a rotor's direction, the
+wind), far slower than 10 ms; holding them over the substeps costs one array add per vertex in
+the compiled loop, and keeps the no-effects path (a zero array) as fast as before.
+
+A hook a class does not override is never called, so an effect pays only for what it does.
+"""
+from __future__ import annotations
+
+import importlib
+import inspect
+from collections import deque
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from sdexp.errors import UserError
+
+
+class Effect:
+    """Base class of every effect; each hook is a no-op here."""
+
+    name = "effect"
+    description = ""
+    equation = ""
+
+    def modify_model(self, fem, damping: float, drone):
+        return fem, damping
+
+    def setup(self, sim) -> None:
+        pass
+
+    def reset(self, sim) -> None:
+        pass
+
+    def actuate(self, thrust: np.ndarray, sim) -> np.ndarray:
+        return thrust
+
+    def body_forces(self, sim, f: np.ndarray) -> None:
+        pass
+
+    def sense(self, readings, sim):
+        return readings
+
+
+def overrides(effect: Effect, hook: str) -> bool:
+    return getattr(type(effect), hook) is not getattr(Effect, hook)
+
+
+# ------------------------------------------------------------------------------ geometry helpers
+
+def rotor_normals(x: np.ndarray, rotors) -> np.ndarray:
+    """(m, dim) unit area-weighted normals of the rotor patches at positions x (the thrust
+    directions of sdexp.sim.physics.integrator.rotor_forces)."""
+    f = rotors.faces
+    if x.shape[1] == 3:
+        u, w = x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]]
+        # written out: np.cross costs ~100 us a call on these few faces
+        n = np.stack([u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1], u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2],
+                      u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]], axis=1)
+    else:
+        d = x[f[:, 1]] - x[f[:, 0]]
+        n = np.stack([d[:, 1], -d[:, 0]], axis=1)
+    out = np.add.reduceat(n, rotors.face_ptr[:-1], axis=0)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def patch_means(a: np.ndarray, rotors) -> np.ndarray:
+    """(m, dim) mean of a per-vertex array over each rotor's bound vertices."""
+    return np.add.reduceat(a[rotors.verts] * rotors.weights[:, None], rotors.vert_ptr[:-1], axis=0)
+
+
+def vertex_areas(rest: np.ndarray, boundary: np.ndarray) -> np.ndarray:
+    """Each vertex's share of one side of the surface (half the boundary area, or in 2D half
+    the boundary length x 1 m depth): the area a thin plate shows to the air."""
+    if boundary.shape[1] == 3:
+        p0, p1, p2 = (rest[boundary[:, k]] for k in range(3))
+        area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+    else:
+        area = np.linalg.norm(rest[boundary[:, 1]] - rest[boundary[:, 0]], axis=1)
+    a = np.zeros(len(rest))
+    k = boundary.shape[1]
+    np.add.at(a, boundary.ravel(), np.repeat(area / k, k))
+    return 0.5 * a
+
+
+def _vec(value, dim: int, key: str, name: str) -> np.ndarray:
+    v = np.atleast_1d(np.asarray(value, dtype=float))
+    if v.shape != (dim,):
+        raise UserError(f"sim.effects: {name}.{key} = {np.asarray(value).tolist()} needs {dim} numbers")
+    return v
+
+
+# ------------------------------------------------------------------------------ actuator effects
+
+class MotorLag(Effect):
+    name = "motor_lag"
+    description = "Each rotor's thrust follows its command through a first-order lag (motor and propeller inertia)."
+    equation = "tau dT/dt = T_cmd - T; applied = mean of T over the control step (exact for a held command)"
+
+    def __init__(self, tau: float = 0.05):
+        if tau < 0:
+            raise UserError(f"sim.effects: motor_lag.tau = {tau} must be >= 0 s")
+        self.tau = float(tau)
+
+    def reset(self, sim) -> None:
+        self.state = np.zeros(sim.drone.num_rotors)
+
+    def actuate(self, thrust, sim):
+        if self.tau == 0.0:
+            return thrust
+        h = sim.cfg.control_dt / self.tau
+        decay = np.exp(-h)
+        start = self.state
+        self.state = thrust + (start - thrust) * decay
+        return thrust + (start - thrust) * (1.0 - decay) / h
+
+
+class ActuationDelay(Effect):
+    name = "actuation_delay"
+    description = "An extra transport delay between command and rotor (radio, ESC), fractional steps interpolated."
+    equation = "T(t) = T_cmd(t - d), linear between control steps"
+
+    def __init__(self, delay: float = 0.02):
+        if delay < 0:
+            raise UserError(f"sim.effects: actuation_delay.delay = {delay} must be >= 0 s")
+        self.delay = float(delay)
+
+    def reset(self, sim) -> None:
+        steps = self.delay / sim.cfg.control_dt
+        self.k = int(np.floor(steps))
+        self.frac = steps - self.k
+        zero = np.zeros(sim.drone.num_rotors)
+        self.history = deque([zero] * (self.k + 2), maxlen=self.k + 2)
+
+    def actuate(self, thrust, sim):
+        if self.delay == 0.0:
+            return thrust
+        self.history.append(np.array(thrust, dtype=float))
+        newer, older = self.history[-1 - self.k], self.history[-2 - self.k]
+        return (1.0 - self.frac) * newer + self.frac * older
+
+
+class ThrustLoss(Effect):
+    name = "thrust_loss"
+    description = "One rotor produces a fraction less thrust than commanded (worn or damaged propeller)."
+    equation = "T_r = (1 - eta) T_cmd,r for the affected rotor r"
+
+    def __init__(self, rotor: int = 0, fraction: float = 0.2):
+        if not 0 <= fraction < 1:
+            raise UserError(f"sim.effects: thrust_loss.fraction = {fraction} must be in [0, 1)")
+        self.rotor, self.fraction = int(rotor), float(fraction)
+
+    def setup(self, sim) -> None:
+        m = sim.drone.num_rotors
+        if not 0 <= self.rotor < m:
+            raise UserError(f"sim.effects: thrust_loss.rotor = {self.rotor} must be in [0, {m - 1}]")
+        self.gain = np.ones(m)
+        self.gain[self.rotor] = 1.0 - self.fraction
+
+    def actuate(self, thrust, sim):
+        return thrust * self.gain
+
+
+class GroundEffect(Effect):
+    name = "ground_effect"
+    description = "A rotor close to the ground makes more thrust (Cheeseman-Bennett image-vortex model)."
+    equation = "T = T_cmd / (1 - (R / 4h)^2), h = rotor height above the ground, clamped at h >= R/2"
+
+    def __init__(self, radius: float = 0.5, ground: float = 0.0):
+        if radius < 0:
+            raise UserError(f"sim.effects: ground_effect.radius = {radius} must be >= 0 m")
+        self.radius, self.ground = float(radius), float(ground)
+
+    def actuate(self, thrust, sim):
+        if self.radius == 0.0:
+            return thrust
+        h = patch_means(sim.body.x, sim.drone.rotors)[:, 1] - self.ground
+        h = np.maximum(h, 0.5 * self.radius)
+        return thrust / (1.0 - (self.radius / (4.0 * h)) ** 2)
+
+
+# ------------------------------------------------------------------------------ body effects
+
+class RotorReactionTorque(Effect):
+    name = "rotor_reaction_torque"
+    description = ("Each spinning rotor turns the body the other way about its axis (3D only): a pure "
+                   "torque on the whole body, or a couple on a motor-mount disc (mount_radius).")
+    equation = ("tau_r = -s_r k T_r n_r (s_r = +-1 spin, alternating around the centre), as mass-weighted "
+                "forces m_i a n_r x r_i about the centre of mass (or a couple on a mount disc)")
+
+    def __init__(self, k: float = 0.02, spin: Any = None, mount_radius: float | None = None):
+        self.k = float(k)
+        self.spin = None if spin is None else np.asarray(spin, dtype=float)
+        self.mount_radius = mount_radius
+
+    def setup(self, sim) -> None:
+        d = sim.drone
+        if d.dim != 3:
+            raise UserError("sim.effects: rotor_reaction_torque needs a 3D drone (a 2D rotor axis lies in the plane)")
+        # where the couple acts: with mount_radius, on the vertices within it of the rotor patch
+        # (the motor mount plate), which twists a soft body locally; by default on the whole
+        # body with mass-proportional weights about the centre of mass, i.e. its net effect,
+        # a torque that turns the body without twisting it (a twist the sensors cannot see
+        # would make the effect unidentifiable from re-initialised sensor states)
+        r = d.rotors
+        rest = sim.fem.rest
+        self.mounts = []
+        for i in range(r.count):
+            v = r.verts[r.vert_ptr[i]:r.vert_ptr[i + 1]]
+            if self.mount_radius is not None:
+                c = rest[v].mean(axis=0)
+                near = np.flatnonzero(np.linalg.norm(rest - c, axis=1) <= float(self.mount_radius))
+                v = np.union1d(v, near)
+            self.mounts.append(v)
+        if self.spin is None:
+            a = d.rotors.anchors - d.fem.rest.mean(axis=0)
+            order = np.argsort(np.arctan2(a[:, 2], a[:, 0]))
+            self.spin = np.empty(d.num_rotors)
+            self.spin[order] = np.where(np.arange(d.num_rotors) % 2 == 0, 1.0, -1.0)
+        elif self.spin.shape != (d.num_rotors,):
+            raise UserError(f"sim.effects: rotor_reaction_torque.spin needs {d.num_rotors} entries")
+
+    def body_forces(self, sim, f):
+        if self.k == 0.0:
+            return
+        r = sim.drone.rotors
+        x = sim.body.x
+        n = rotor_normals(x, r)
+        tau = -self.spin * self.k * sim.applied
+        if self.mount_radius is None:
+            m = sim.fem.mass
+            off = x - m @ x / m.sum()
+            for i in range(r.count):
+                perp = off - np.outer(off @ n[i], n[i])
+                # f_i = m_i a n x r_i: torque a sum m |r_perp|^2 n, zero net force
+                a = tau[i] / max(m @ np.sum(perp * perp, axis=1), 1e-12)
+                f += (a * m)[:, None] * np.cross(n[i], perp)
+            return
+        for i, v in enumerate(self.mounts):
+            off = x[v] - x[v].mean(axis=0)
+            off -= np.outer(off @ n[i], n[i])
+            # sum_j off_j x (a n x off_j) = a sum |off_j|^2 n for offsets in the disc plane
+            a = tau[i] / max(np.sum(off * off), 1e-12)
+            f[v] += a * np.cross(n[i], off)
+
+
+class RotorDrag(Effect):
+    name = "rotor_drag"
+    description = ("Blade flapping and induced drag: each rotor resists its in-plane velocity, linearly "
+                   "(the standard multirotor drag model).")
+    equation = "F_r = -k (v_r - (v_r . n_r) n_r), v_r the rotor patch velocity, spread over the patch"
+
+    def __init__(self, k: float = 0.1):
+        self.k = float(k)
+
+    def body_forces(self, sim, f):
+        if self.k == 0.0:
+            return
+        r = sim.drone.rotors
+        n = rotor_normals(sim.body.x, r)
+        v = patch_means(sim.body.v, r)
+        v_plane = v - np.sum(v * n, axis=1, keepdims=True) * n
+        F = -self.k * v_plane
+        np.add.at(f, r.verts, F[np.repeat(np.arange(r.count), np.diff(r.vert_ptr))] * r.weights[:, None])
+
+
+class QuadraticDrag(Effect):
+    name = "quadratic_drag"
+    description = "Air drag on the surface, quadratic in the velocity relative to still air, per area-weighted vertex."
+    equation = "f_i = -c a_i |v_i| v_i, c = rho C_d / 2 (N s^2/m^4), a_i the vertex's share of one side of the surface"
+
+    def __init__(self, c: float = 0.05):
+        if c < 0:
+            raise UserError(f"sim.effects: quadratic_drag.c = {c} must be >= 0")
+        self.c = float(c)
+
+    def setup(self, sim) -> None:
+        self.area = vertex_areas(sim.fem.rest, sim.drone.boundary)[:, None]
+
+    def air(self, sim) -> np.ndarray | float:
+        return 0.0
+
+    def body_forces(self, sim, f):
+        if self.c == 0.0:
+            return
+        u = sim.body.v - self.air(sim)
+        f -= self.c * self.area * np.linalg.norm(u, axis=1, keepdims=True) * u
+
+
+class Wind(QuadraticDrag):
+    name = "wind"
+    description = "Moving air (constant plus a sinusoidal gust) acting through the quadratic surface drag."
+    equation = "f_i = -c a_i |v_i - w(t)| (v_i - w(t)), w(t) = w + g sin(2 pi f t)"
+
+    def __init__(self, velocity: Any = (1.0, 0.0, 0.0), c: float = 0.05, gust: Any = None,
+                 gust_freq: float = 0.0):
+        super().__init__(c)
+        self.velocity = np.asarray(velocity, dtype=float)
+        self.gust = None if gust is None else np.asarray(gust, dtype=float)
+        self.gust_freq = float(gust_freq)
+
+    def setup(self, sim) -> None:
+        super().setup(sim)
+        d = sim.drone.dim
+        self.velocity = _vec(self.velocity, d, "velocity", self.name)
+        self.gust = np.zeros(d) if self.gust is None else _vec(self.gust, d, "gust", self.name)
+
+    def air(self, sim):
+        return self.velocity + self.gust * np.sin(2 * np.pi * self.gust_freq * sim.t)
+
+
+# ------------------------------------------------------------------------------ model effects
+
+class Payload(Effect):
+    name = "payload"
+    description = "An extra point mass carried at an offset (battery, camera), lumped on the nearest vertices."
+    equation = "m_i += m / n for the n vertices within radius of the rest point (at least the nearest)"
+
+    def __init__(self, mass: float = 0.1, point: Any = None, radius: float = 0.3):
+        if mass < 0:
+            raise UserError(f"sim.effects: payload.mass = {mass} must be >= 0 kg")
+        self.mass, self.point, self.radius = float(mass), point, float(radius)
+
+    def modify_model(self, fem, damping, drone):
+        point = fem.rest.mean(axis=0) if self.point is None else _vec(self.point, fem.dim, "point", self.name)
+        dist = np.linalg.norm(fem.rest - point, axis=1)
+        verts = np.flatnonzero(dist <= self.radius)
+        if len(verts) == 0:
+            verts = np.array([np.argmin(dist)])
+        mass = fem.mass.copy()
+        mass[verts] += self.mass / len(verts)
+        return replace(fem, mass=mass), damping
+
+
+class StiffnessScale(Effect):
+    name = "stiffness_scale"
+    description = "The material is stiffer or softer than nominal (Young's modulus times a factor)."
+    equation = "E = k E_nominal (both Lame parameters scale)"
+
+    def __init__(self, scale: float = 1.0):
+        if scale <= 0:
+            raise UserError(f"sim.effects: stiffness_scale.scale = {scale} must be > 0")
+        self.scale = float(scale)
+
+    def modify_model(self, fem, damping, drone):
+        return replace(fem, mu=fem.mu * self.scale, lam=fem.lam * self.scale), damping
+
+
+class DampingScale(Effect):
+    name = "damping_scale"
+    description = "The material (and air) dissipates more or less than nominal: mass-proportional damping times a factor."
+    equation = "c = k c_nominal in m_i dv_i/dt = f_i - c m_i v_i"
+
+    def __init__(self, scale: float = 1.0):
+        if scale < 0:
+            raise UserError(f"sim.effects: damping_scale.scale = {scale} must be >= 0")
+        self.scale = float(scale)
+
+    def modify_model(self, fem, damping, drone):
+        return fem, damping * self.scale
+
+
+# ------------------------------------------------------------------------------ sensor effects
+
+class ImuBias(Effect):
+    name = "imu_bias"
+    description = ("A constant offset on one reading of the IMUs: attitude (an accelerometer bias tilts "
+                   "the gravity reference), gyro rate, position or velocity.")
+    equation = "rot' = exp([b]x) rot (2D: theta + b); omega' = omega + b; pos' = pos + b; vel' = vel + b"
+
+    CHANNELS = ("rot", "omega", "pos", "vel")
+
+    def __init__(self, channel: str = "rot", value: Any = (0.02, 0.0, 0.0), imus: Any = None):
+        if channel not in self.CHANNELS:
+            raise UserError(f"sim.effects: imu_bias.channel = {channel!r}: choose one of {list(self.CHANNELS)}")
+        self.channel, self.imus = channel, imus
+        self.value = np.asarray(value, dtype=float)
+
+    def setup(self, sim) -> None:
+        d = sim.drone.dim
+        n = (3 if d == 3 else 1) if self.channel in ("rot", "omega") else d
+        self.value = _vec(self.value, n, "value", self.name)
+        k = sim.drone.imus.idx.shape[0]
+        self.idx = np.arange(k) if self.imus is None else np.asarray(self.imus, dtype=int)
+        if self.idx.size and (self.idx.min() < 0 or self.idx.max() >= k):
+            raise UserError(f"sim.effects: imu_bias.imus must index the drone's {k} IMUs")
+        if self.channel == "rot" and d == 3:
+            from sdexp.sensing.rotations import exp_so3
+            self.rot = exp_so3(self.value)
+
+    def sense(self, r, sim):
+        if not np.any(self.value):
+            return r
+        i = self.idx
+        if self.channel == "pos":
+            pos = r.pos.copy(); pos[i] += self.value
+            return replace(r, pos=pos)
+        if self.channel == "vel":
+            vel = r.vel.copy(); vel[i] += self.value
+            return replace(r, vel=vel)
+        if self.channel == "omega":
+            om = np.array(r.omega, dtype=float); om[i] += self.value if om.ndim == 2 else self.value[0]
+            return replace(r, omega=om)
+        rot = np.array(r.rot, dtype=float)
+        rot[i] = self.rot @ rot[i] if rot.ndim == 3 else rot[i] + self.value[0]
+        return replace(r, rot=rot)
+
+
+LIBRARY: dict[str, type[Effect]] = {c.name: c for c in (
+    RotorReactionTorque, RotorDrag, QuadraticDrag, GroundEffect, MotorLag, ActuationDelay, Wind,
+    ThrustLoss, Payload, StiffnessScale, DampingScale, ImuBias)}
+
+
+def _import(path: str):
+    module, _, attr = path.rpartition(".")
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError, ValueError) as err:
+        raise UserError(f"sim.effects: _target_ {path!r} cannot be imported: {err}") from None
+
+
+# Ranges that a user's sim.effects entry must respect and that the constructors do not check,
+# because the discrepancy fits (sdexp.discrepancy.candidates) step their linear coefficients
+# through zero to either side: a config asks for the physical effect only.
+PHYSICAL = {
+    "rotor_drag": {"k": (lambda v: isinstance(v, (int, float)) and v >= 0, ">= 0 N s/m (drag resists motion)")},
+}
+
+
+def check_config_effects(entries) -> None:
+    """sim.effects as a user wrote them: known names, known parameters, physical ranges."""
+    if isinstance(entries, (DictConfig, ListConfig)):
+        entries = OmegaConf.to_container(entries, resolve=True)
+    build_effects([dict(e) if isinstance(e, dict) else e for e in entries or []], physical=True)
+
+
+def build_effects(entries, physical: bool = False) -> list[Effect]:
+    """Objects from ``sim.effects`` entries (dicts, DictConfigs or Effect instances)."""
+    if isinstance(entries, (DictConfig, ListConfig)):
+        entries = OmegaConf.to_container(entries, resolve=True)
+    out = []
+    for k, e in enumerate(entries or []):
+        if isinstance(e, Effect):
+            out.append(e)
+            continue
+        if isinstance(e, DictConfig):
+            e = OmegaConf.to_container(e, resolve=True)
+        if not isinstance(e, dict):
+            raise UserError(f"sim.effects[{k}] = {e!r}: expected {{name: ..., params}} or {{_target_: ...}}")
+        e = dict(e)
+        if "_target_" in e:
+            cls = _import(e.pop("_target_"))
+            e.pop("name", None)
+        else:
+            name = e.pop("name", None)
+            if name not in LIBRARY:
+                raise UserError(f"sim.effects[{k}].name = {name!r} is unknown: choose one of "
+                                f"{sorted(LIBRARY)} or give a _target_ class")
+            cls = LIBRARY[name]
+        label = getattr(cls, "name", getattr(cls, "__name__", str(cls)))
+        try:
+            allowed = [q for q in inspect.signature(cls).parameters if q not in ("self", "args", "kwargs")]
+        except (TypeError, ValueError):
+            allowed = None
+        unknown = [q for q in e if allowed is not None and q not in allowed]
+        if unknown:
+            raise UserError(f"sim.effects[{k}].{unknown[0]} is not a parameter of {label}: allowed "
+                            f"{', '.join(allowed) or 'none'}")
+        for q, (ok, text) in (PHYSICAL.get(label, {}) if physical else {}).items():
+            if q in e and not ok(e[q]):
+                raise UserError(f"sim.effects[{k}].{q} = {e[q]!r} is not physical for {label}: allowed {text}")
+        try:
+            obj = cls(**e)
+        except TypeError as err:
+            raise UserError(f"sim.effects[{k}] ({label}): {err}; allowed parameters "
+                            f"{', '.join(allowed or [])}") from None
+        if not isinstance(obj, Effect):
+            raise UserError(f"sim.effects[{k}]: {cls} is not an sdexp.sim.physics.effects.Effect")
+        out.append(obj)
+    return out

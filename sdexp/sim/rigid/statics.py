@@ -1,0 +1,76 @@
+"""What a drone's rotors hold open loop, noise-free: bends under a thrust pattern that puts no net
+lift or tilting torque on the rest shape (geometry.deformation_patterns: the body hovers roughly
+level and only deforms), and the hover thrust that keeps the rest shape best.
+
+Yardsticks of the body itself, apart from any controller: the obstacle experiment's fold limit
+(how far the star's wings can fold at all) and bench_sim's accuracy column (how much a petal
+bends under a fixed load at each mesh resolution: coarse linear tets are too stiff). The
+shape-holding hover is the centre of the data recipe's draw with ``data.hover: shape``."""
+from __future__ import annotations
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from sdexp.config import NoiseConfig
+from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body
+from sdexp.sensing import decompose
+from sdexp.sim.simulator import Simulator
+
+
+def outer_rotors(drone, along_z: bool = False) -> np.ndarray:
+    """Mask of the rotors beyond half the largest rotor reach from the centre (in X-Z); with
+    ``along_z`` only those nearer the Z axis than the X axis (the star's folding wings)."""
+    fem = drone.fem
+    _, _, _, pos, _ = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
+    reach = np.linalg.norm(pos[:, [0, 2]], axis=1) if fem.dim == 3 else np.abs(pos[:, 0])
+    mask = reach > 0.501 * reach.max()   # a rotor at exactly half the reach (the rod's) is inner, not a rounding tie
+    if along_z:
+        mask &= np.abs(pos[:, 2]) > np.abs(pos[:, 0])
+    return mask
+
+
+def hold(drone, sim_cfg, u: np.ndarray, seconds: float) -> np.ndarray:
+    """Bend angles s (rad) after holding thrust ``u`` for ``seconds`` from rest, noise-free."""
+    sim = Simulator(drone, OmegaConf.merge(sim_cfg, {"obstacles": []}),
+                    OmegaConf.structured(NoiseConfig(enabled=False)), seed=0)
+    r = sim.reset()
+    for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
+        r = sim.step(u)
+        if not sim.alive:
+            break
+    return decompose(r, drone.layout).s
+
+
+def held_bend(drone, sim_cfg, rotors: np.ndarray, amplitude: float | None = None,
+              seconds: float = 3.0) -> np.ndarray:
+    """Bend angles s (deg, one per peripheral sensor) after ``seconds`` of hover thrust plus the
+    deformation pattern nearest to pushing the masked ``rotors`` up, its largest rotor offset
+    ``amplitude`` (N; None: as large as +-Tmax allows on top of hover)."""
+    null = deformation_patterns(drone)
+    pattern = null @ (null.T @ rotors.astype(float))
+    if not np.abs(pattern).max() > 1e-9:
+        raise ValueError(f"drone {drone.name}: those rotors cannot push without a net lift or tilting torque")
+    pattern /= np.abs(pattern).max()
+    hover, tmax = rest_hover_thrust(drone, float(sim_cfg.gravity)), drone.max_thrust
+    if amplitude is None:
+        room = np.where(pattern > 0, tmax - hover, -tmax - hover) / np.where(pattern == 0, np.inf, pattern)
+        amplitude = room[pattern != 0].min()
+    return np.rad2deg(hold(drone, sim_cfg, hover + amplitude * pattern, seconds))
+
+
+def shape_hover_thrust(drone, sim_cfg, seconds: float = 2.0, iterations: int = 3, step: float = 0.1) -> np.ndarray:
+    """The rest-shape hover thrust plus the deformation pattern that keeps the bends smallest
+    after ``seconds`` of holding it (Gauss-Newton on s over the pattern coefficients, finite
+    differences of ``step`` N), within +-Tmax. The rigid hover thrust spreads the weight evenly
+    over the rotors; a soft body's mass is not spread like its rotors, so that thrust bends it
+    (the rod: its ends curl 54 deg in 1 s and it falls; with this thrust 10 deg)."""
+    u = rest_hover_thrust(drone, float(sim_cfg.gravity))
+    null = deformation_patterns(drone)
+    if null.shape[1] == 0 or drone.layout.n_s == 0:
+        return u
+    tmax = drone.max_thrust
+    for _ in range(iterations):
+        s0 = hold(drone, sim_cfg, u, seconds)
+        J = np.stack([(hold(drone, sim_cfg, u + step * p, seconds) - s0) / step for p in null.T], 1)
+        u = np.clip(u + null @ np.linalg.lstsq(J, -s0, rcond=None)[0], -tmax, tmax)
+    return u
