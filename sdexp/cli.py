@@ -135,6 +135,9 @@ def main() -> None:
         if _started and not isinstance(err, HydraException):
             raise   # an OmegaConf error inside a run is a bug, not a config mistake
         fail(describe(err, args))
+    except BrokenPipeError:   # the output piped into a reader that stopped (sdexp --help | head)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(0)
     except OSError as err:
         if _started:
             raise
