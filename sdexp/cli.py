@@ -43,10 +43,8 @@ def _main(cfg: DictConfig) -> None:
             from sdexp.log import to_log_files
             to_log_files(f"sdexp: error: {err}")
         fail(str(err))
-    log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}")
-    for k, v in metrics.items():
-        if not isinstance(v, (dict, list)):
-            log.info(f"  {k}: {v}")
+    from sdexp.eval.experiments import summary
+    log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}\n{summary(cfg, metrics)}")
 
 
 def _discard_if_empty(out_dir: Path) -> None:

@@ -356,3 +356,17 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
         return metrics
     finally:
         lock.unlink(missing_ok=True)
+
+
+def summary(cfg, metrics: dict, lines: int = 12) -> str:
+    """What a run prints last: the runner's own table beside the paper's (its ``summary(cfg,
+    metrics)``) where it has one, else the first scalar metrics rounded; all of them are in
+    metrics.json."""
+    runner = importlib.import_module(RUNNERS[cfg.experiment.name].split(":")[0])
+    if hasattr(runner, "summary"):
+        return runner.summary(cfg, metrics)
+    scalars = [(k, v) for k, v in metrics.items() if not isinstance(v, (dict, list))]
+    text = [f"  {k}: {v:.4g}" if isinstance(v, float) else f"  {k}: {v}" for k, v in scalars[:lines]]
+    if len(scalars) > lines:
+        text.append(f"  ... {len(scalars) - lines} more in metrics.json")
+    return "\n".join(text)

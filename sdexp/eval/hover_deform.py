@@ -98,3 +98,13 @@ def _plot(tab, a, dyn, settle: float, path: Path, drone: str, out: dict) -> None
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def summary(cfg, metrics: dict) -> str:
+    """The measured deviations beside the paper's band."""
+    m = metrics
+    return "\n".join([
+        f"  survived {m['flight_survival_time']:.1f} s{'' if m['flight_survived'] else ' (' + m['flight_failure'] + ')'}",
+        f"  max attitude deviation {m['max_attitude_deviation_deg']:.2f} deg    (paper: within 3 deg)",
+        f"  max position deviation {m['max_position_deviation_cm']:.1f} cm     (paper: within 5 cm)",
+        f"  rms bend error {m['bend_rms_error_deg']:.2f} deg; the paper's band {'held' if m['paper_band_held'] else 'not held'}"])

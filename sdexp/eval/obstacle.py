@@ -156,3 +156,14 @@ def _gap_width(boxes) -> float | None:
     above = [b.min[2] for b in boxes if b.min[2] > 0]
     below = [b.max[2] for b in boxes if b.max[2] < 0]
     return (min(above) - max(below)) if above and below else None
+
+
+def summary(cfg, metrics: dict) -> str:
+    """Fold, narrowing and Z hold beside the paper's figures."""
+    m = metrics
+    result = "passed" if m["passed"] else ("hit the blocks" if m["hit_obstacle"] else "did not pass")
+    return "\n".join([
+        f"  wing fold {m['wing_pitch_change_deg']:.1f} deg   (paper: > 73 deg; open-loop limit {m['fold_limit_deg']:.0f} deg)",
+        f"  narrower by {m['width_reduction_percent']:.1f}%  (paper: > 30%)",
+        f"  max Z deviation {m['max_z_deviation_m']:.2f} m  (paper: < 0.05 m)",
+        f"  {result}; flight {m['flight_survival_time']:.2f} s{', ' + m['flight_failure'] if m['flight_failure'] else ''}"])

@@ -83,3 +83,15 @@ def run(cfg, out_dir: Path) -> dict:
     position_plot(tables, titles, out_dir / "sota.png",
                   f"{cfg.drone.name}: {list(p.start)} -> {list(p.target)} in {seconds:g} s (seed {cfg.seed})", seconds)
     return out
+
+
+def summary(cfg, metrics: dict) -> str:
+    """Ours and the baselines beside the paper's table, rounded."""
+    rows = [f"  {'controller':<24}{'survived (s)':>14}{'paper':>8}{'final error (m)':>17}{'paper':>9}"]
+    for name in cfg.experiment.params.controllers:
+        if f"{name}_survival_time" not in metrics:
+            continue
+        ps, pe, _ = PAPER.get(name, (float("nan"),) * 2 + (None,))
+        rows.append(f"  {LABELS.get(name, name):<24}{metrics[f'{name}_survival_time']:>14.2f}{ps:>8.2f}"
+                    f"{metrics[f'{name}_final_error']:>17.3f}{pe:>9.3f}")
+    return "\n".join(rows)
