@@ -147,7 +147,7 @@ def fixed_point_section(results: Path) -> tuple[list[str], list[tuple]]:
         and fixed_fail_low <= fixed_fail_high / 2 else PARTLY if relin_ok else NOT
     ours = (f"relinearised keeps control in every flight, worst final error {relin_worst:.2f} m; linearised once "
             f"loses control in " + ", ".join(f"{n - kept[('fixed', lv)]} of {n} at {lv}%" for lv in levels))
-    return lines, [(claim, "deteriorates past 20%, NaN past 40%; steady at 80% (figure: n)", ours, verdict,
+    return lines, [(claim, "deteriorates past 20%, NaN past 40%; steady at 80%", ours, verdict,
                     "reproduced: relinearised always keeps control within 25% of the trip, linearised once fails in "
                     "most seeds above 40% and at most half as often at <= 20%")]
 
