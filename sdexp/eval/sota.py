@@ -87,11 +87,11 @@ def run(cfg, out_dir: Path) -> dict:
 
 def summary(cfg, metrics: dict) -> str:
     """Ours and the baselines beside the paper's table, rounded."""
-    rows = [f"  {'controller':<24}{'survived (s)':>14}{'paper':>8}{'final error (m)':>17}{'paper':>9}"]
+    rows = [f"  {'controller':<24}{'survival (s)':>14}{'paper':>8}{'final error (m)':>17}{'paper':>9}"]
     for name in cfg.experiment.params.controllers:
         if f"{name}_survival_time" not in metrics:
             continue
-        ps, pe, _ = PAPER.get(name, (float("nan"),) * 2 + (None,))
+        ps, pe, _ = PAPER.get(name, (float("nan"),) * 3)
         rows.append(f"  {LABELS.get(name, name):<24}{metrics[f'{name}_survival_time']:>14.2f}{ps:>8.2f}"
                     f"{metrics[f'{name}_final_error']:>17.3f}{pe:>9.3f}")
     return "\n".join(rows)
