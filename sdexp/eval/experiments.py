@@ -232,23 +232,27 @@ def claim(out_dir: Path) -> Path:
     killed mid-way) is taken over, so an interrupted run resumes."""
     lock = out_dir / RUN_LOCK
     me = {"pid": os.getpid(), "host": socket.gethostname(), "start": _process_start(os.getpid())}
-    for _ in range(3):
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
+    # written whole first and then hard-linked into place: a lock is never seen half-written (a
+    # second run that read an empty lock took it for a dead one's and both went on)
+    mine = out_dir / f".{RUN_LOCK}.{os.getpid()}.tmp"
+    mine.write_text(json.dumps(me))
+    try:
+        for _ in range(3):
             try:
-                owner = json.loads(lock.read_text() or "{}")
-            except (OSError, ValueError):
-                owner = {}
-            if owner and _alive(owner):
-                raise UserError(f"{out_dir} is in use by another run (pid {owner.get('pid')} on "
-                                f"{owner.get('host')}): wait for it, or choose another folder with "
-                                f"hydra.run.dir=<folder>; delete {lock} if no run is using it")
-            lock.unlink(missing_ok=True)   # a killed run's lock (or a half-written one)
-            continue
-        with os.fdopen(fd, "w") as fh:
-            json.dump(me, fh)
-        return lock
+                os.link(mine, lock)
+                return lock
+            except FileExistsError:
+                try:
+                    owner = json.loads(lock.read_text() or "{}")
+                except (OSError, ValueError):
+                    owner = {}
+                if owner and _alive(owner):
+                    raise UserError(f"{out_dir} is in use by another run (pid {owner.get('pid')} on "
+                                    f"{owner.get('host')}): wait for it, or choose another folder with "
+                                    f"hydra.run.dir=<folder>; delete {lock} if no run is using it") from None
+                lock.unlink(missing_ok=True)   # a killed run's lock (or a damaged one)
+    finally:
+        mine.unlink(missing_ok=True)
     raise UserError(f"{out_dir}: could not take the run lock {lock}: another run keeps taking it")
 
 

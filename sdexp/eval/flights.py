@@ -72,6 +72,15 @@ class Setup:
                     paraview=bool(self.cfg.experiment.params.get("paraview", False)))
 
 
+def ending(m: dict) -> str:
+    """How a flight ended, for a figure title: survived, or the failure's time and short reason."""
+    if m["survived"]:
+        return f"survived {m['survival_time']:.0f} s"
+    why = m["failure"].split(": ", 1)[-1]
+    why = why.split(",")[0] if why.startswith("left the arena") else why.split(" > ")[0]
+    return f"failed at {m['survival_time']:.2f} s ({why})"
+
+
 def flight_table(flight: Flight, dyn) -> pd.DataFrame:
     """One row per control step: time, the noise-free state by channel, goal position, command."""
     a = flight.arrays()

@@ -16,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sdexp.eval.flights import Setup, flight_table
-from sdexp.eval.sota import ending
+from sdexp.eval.flights import Setup, ending, flight_table
 
 
 def schedule(n_s: int, angle: float, settle: float, ramp: float, hold: float) -> tuple[list, list]:

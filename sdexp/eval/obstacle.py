@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sdexp.eval.flights import Setup, flight_table
-from sdexp.eval.sota import ending
+from sdexp.eval.flights import Setup, ending, flight_table
 from sdexp.sim.rigid.statics import held_bend, outer_rotors
 
 

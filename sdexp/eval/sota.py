@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdexp.eval.flights import Setup, flight_table, position_plot
+from sdexp.eval.flights import Setup, ending, flight_table, position_plot
 
 log = logging.getLogger(__name__)
 
@@ -33,15 +33,6 @@ PAPER = {
 }
 LABELS = {"ours": "ours (relinearizing LQR)", "rigid_lqr": "LQR (rest shape)",
           "geometry_lqr": "geometry-updating LQR", "neural": "neural controller"}
-
-
-def ending(m: dict) -> str:
-    """How a flight ended, for a figure title: survived, or the failure's time and short reason."""
-    if m["survived"]:
-        return f"survived {m['survival_time']:.0f} s"
-    why = m["failure"].split(": ", 1)[-1]
-    why = why.split(",")[0] if why.startswith("left the arena") else why.split(" > ")[0]
-    return f"failed at {m['survival_time']:.2f} s ({why})"
 
 
 def _paper_ending(survival: float, seconds: float) -> str:

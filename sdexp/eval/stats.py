@@ -21,9 +21,10 @@ import numpy as np
 import pandas as pd
 
 from sdexp.errors import UserError
+from sdexp.eval.experiments import NOT_COMPARED
 
-# not what tells a group from another (animate: whether a flight is also drawn)
-IGNORED_KEYS = ("seed", "cache_dir", "cores", "sweep_dir", "experiment.params.animate", "experiment.params.paraview")
+# not what tells a group from another: the seed, and what a rerun does not compare either
+IGNORED_KEYS = ("seed", *NOT_COMPARED)
 
 
 def _flat(node, prefix: str = "") -> dict:
