@@ -177,11 +177,13 @@ class DiscrepancyConfig:
     out: Optional[str] = None          # where the fitted effect override is written; null = the run folder
     horizon: float = 0.2               # s predicted from each re-initialised measured state
     stride: float = 0.5                # s between window starts
-    history: float = 0.3               # s of commands replayed through the actuation chain first
+    history: float = 0.3               # s of commands replayed through the actuation chain first, at
+                                       # least: a slow candidate asks for more (its FitSpec.memory)
     start_average: int = 8             # rows the start state's p, e, s are averaged over (causal, rate-carried)
     holdout: float = 0.5               # fraction of flights held out (at least one): tests need many windows
     fit_windows: int = 30              # training windows the fits use (evenly thinned): the cost driver
-    candidates: List[str] = field(default_factory=list)  # [] = the whole effect library
+    candidates: List[Any] = field(default_factory=list)  # library names and {_target_: ...} entries;
+                                                          # [] = the whole effect library
     alpha: float = 0.05                # family-wise error rate of the candidate tests (Bonferroni)
     min_gain: float = 0.02             # smallest held-out relative improvement that names an effect
     screen: int = 3                    # candidates refined and tested on held-out flights
@@ -491,5 +493,7 @@ def validate(cfg: DictConfig | Config) -> None:
            "flights >= 1, seconds > 0")
     _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
     check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
-    from sdexp.sim.physics.effects import check_config_effects
+    from sdexp.sim.physics.effects import check_config_effects, resolve_effect
     check_config_effects(s.effects)   # names, parameters and ranges, before the run starts
+    for e in q.candidates:           # names and importable classes, before the logs are read
+        resolve_effect(OmegaConf.to_container(e) if isinstance(e, DictConfig) else e, "discrepancy.candidates")

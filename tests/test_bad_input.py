@@ -78,7 +78,7 @@ def rejected(*overrides) -> str:
     ("drone=flower drone.num_rotors=10", "drone.num_rotors", "allowed 9"),
     ("drone=donut drone.num_sensors=5", "drone.num_sensors", "allowed 0 to 4"),
     # effects: known names, known parameters (listed), physical ranges, finite numbers
-    ("+sim.effects=[{name:rotor_drag,k:-0.1}]", "sim.effects[0].k", "allowed >= 0"),
+    ("+sim.effects=[{name:rotor_drag,k:-0.1}]", "sim.effects[0] (rotor_drag)", "rotor_drag.k = -0.1 must be >= 0"),
     ("+sim.effects=[{name:rotor_drag,kk:0.1}]", "sim.effects[0].kk", "allowed k"),
     ("+sim.effects=[{name:thrust_loss,fractoin:0.1}]", "sim.effects[0].fractoin", "allowed rotor, fraction"),
     ("+sim.effects=[{name:rotor_dragg}]", "sim.effects[0].name", "rotor_drag"),

@@ -47,6 +47,7 @@ class RotorTilt(Effect):
     """Outside the library (an ``unmodelled`` scenario): rotor 0 is mounted tilted by ``angle``
     about its patch's local horizontal, so part of its thrust pushes sideways."""
     name = "rotor_tilt"
+    fit_params = {"angle": (-0.5, 0.5, 0.05)}   # rad: what a user declares to make it a candidate
 
     def __init__(self, angle: float = 0.15, rotor: int = 0):
         self.angle, self.rotor = float(angle), int(rotor)
@@ -161,11 +162,11 @@ def oracle_gap(sc: dict, folder: Path, drone, drone_cfg, sim_cfg, noise_cfg, dcf
     from sdexp.discrepancy.localize import noise_floor
     from sdexp.discrepancy.logs import read_logs
     from sdexp.discrepancy.windows import Predictor, make_windows, subset
-    from sdexp.discrepancy.workflow import prepare, split_flights, steps_of, trimmed
+    from sdexp.discrepancy.workflow import history_of, prepare, split_flights, steps_of, trimmed
 
     folder = Path(folder)
     logs = read_logs(folder / "logs", drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
-    h, stride, hist = steps_of(dcfg, logs.dt)
+    h, stride, hist = steps_of(dcfg, logs.dt, history_of(drone, dcfg))
     w = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
     _, held_ids = split_flights(len(logs.flights), dcfg.holdout)
     held = subset(w, held_ids)

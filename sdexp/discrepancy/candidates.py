@@ -1,14 +1,19 @@
-"""The candidate effects the workflow fits, each with the few parameters it estimates.
+"""The candidate effects the workflow fits: library effects and a user's own, one protocol.
 
-Each candidate is parametrised so that theta = 0 is the nominal simulator and the predicted
-channels move about linearly in theta over the strengths that matter (ground effect in R^2,
-stiffness as a compliance change, wind as the dynamic-pressure vector |w| w, payload as mass
-and first moments): one finite-difference Jacobian then fits well, and a second Gauss-Newton
-step (chord) corrects what is left. Where no parametrisation is near-linear over the range
+Every candidate comes from the effect class's own declaration (``fit_spec`` or ``fit_params``,
+sdexp.sim.physics.effects.FitSpec): its parameters theta with physical bounds, theta = 0 the
+nominal simulator (or ``base``). The library parametrises so that the predicted channels move
+about linearly in theta over the strengths that matter (ground effect in R^2, stiffness as a
+compliance change, wind as the dynamic-pressure vector |w| w, payload as mass and first
+moments): one finite-difference Jacobian then fits well, and a second Gauss-Newton step
+(chord) corrects what is left. Where no parametrisation is near-linear over the range
 (stiffness: its strong changes shift the bending frequencies, so the predicted oscillations
 move out of phase; a delay shifts whole responses in time) a coarse ``scan`` of theta values
 picks where the finite differences are taken. ``options`` are discrete choices fitted by
 enumeration (which rotor lost thrust).
+
+``discrepancy.candidates`` lists library names and ``{_target_: package.module.Class, ...}``
+entries alike; an entry's other keys are fixed constructor arguments (not fitted).
 """
 from __future__ import annotations
 
@@ -17,8 +22,8 @@ from typing import Callable
 
 import numpy as np
 
-from sdexp.sim.physics.effects import LIBRARY
 from sdexp.errors import UserError
+from sdexp.sim.physics.effects import LIBRARY, resolve_effect
 
 
 @dataclass
@@ -26,7 +31,7 @@ class Candidate:
     name: str
     params: list[str]                    # fitted parameters (the theta the fit reports)
     steps: np.ndarray                    # finite-difference steps: typical strengths
-    lower: np.ndarray
+    lower: np.ndarray                    # physical bounds
     upper: np.ndarray
     build: Callable                      # (theta, option) -> list of effect entries
     report: Callable                     # (theta, option) -> dict of physical parameters
@@ -34,97 +39,66 @@ class Candidate:
     base: Callable | None = None         # option -> entries at theta = 0 when not nominal
     anchor: np.ndarray | None = None     # where the other columns are differenced (payload: a mass)
     scan: list | None = None             # theta values tried first; the best is linearised about
+    memory: float = 0.0                  # s of past commands a window must replay for it
+    check: Callable | None = None        # (theta, option) -> why a fit is not physical, or None
+
+    def flags(self, theta: np.ndarray, option) -> list[str]:
+        """Why a fit at theta cannot be accepted: a parameter on a physical bound other than its
+        nominal 0 (the data asked for more than physics allows), or the effect's own check."""
+        out = []
+        for j, name in enumerate(self.params):
+            for bound, side in ((self.lower[j], "lower"), (self.upper[j], "upper")):
+                if bound != 0 and abs(theta[j] - bound) <= 1e-6 * max(1.0, abs(bound)):
+                    out.append(f"{name} at its {side} bound {bound:g}")
+        why = self.check(theta, option) if self.check else None
+        return out + ([why] if why else [])
 
 
-def library_candidates(drone, names=None) -> list[Candidate]:
-    dim, m = drone.dim, drone.num_rotors
-    centre = drone.fem.mass @ drone.fem.rest / drone.fem.mass.sum()
-    horiz = [0, 2] if dim == 3 else [0]
-    hn = ["x", "z"] if dim == 3 else ["x"]
-    a = np.array
-
-    def vec(parts, dim_idx, n=dim):
-        v = np.zeros(n)
-        v[dim_idx] = parts
-        return v.tolist()
-
-    cands = {
-        "rotor_reaction_torque": Candidate(
-            "rotor_reaction_torque", ["k"], a([0.02]), a([-0.5]), a([0.5]),
-            lambda th, o: [{"name": "rotor_reaction_torque", "k": float(th[0])}],
-            lambda th, o: {"k": float(th[0])}),
-        "rotor_drag": Candidate(
-            "rotor_drag", ["k"], a([0.1]), a([0.0]), a([5.0]),   # a drag never pushes: k >= 0
-            lambda th, o: [{"name": "rotor_drag", "k": float(th[0])}],
-            lambda th, o: {"k": float(th[0])}),
-        "quadratic_drag": Candidate(
-            "quadratic_drag", ["c"], a([0.03]), a([-0.2]), a([2.0]),
-            lambda th, o: [{"name": "quadratic_drag", "c": float(th[0])}] if th[0] >= 0 else
-            [{"name": "quadratic_drag", "c": 0.0}],
-            lambda th, o: {"c": float(th[0])}),
-        "ground_effect": Candidate(
-            "ground_effect", ["radius_sq"], a([1.0]), a([0.0]), a([9.0]),
-            lambda th, o: [{"name": "ground_effect", "radius": float(np.sqrt(max(th[0], 0.0)))}],
-            lambda th, o: {"radius": float(np.sqrt(max(th[0], 0.0)))}),
-        "motor_lag": Candidate(
-            "motor_lag", ["tau"], a([0.03]), a([0.0]), a([0.5]),
-            lambda th, o: [{"name": "motor_lag", "tau": float(max(th[0], 0.0))}],
-            lambda th, o: {"tau": float(th[0])}),
-        "actuation_delay": Candidate(
-            "actuation_delay", ["delay"], a([0.02]), a([0.0]), a([0.3]),
-            lambda th, o: [{"name": "actuation_delay", "delay": float(max(th[0], 0.0))}],
-            lambda th, o: {"delay": float(th[0])}, scan=[a([0.03]), a([0.06]), a([0.12])]),
-        "thrust_loss": Candidate(
-            "thrust_loss", ["fraction"], a([0.1]), a([0.0]), a([0.9]),
-            lambda th, o: [{"name": "thrust_loss", "rotor": int(o), "fraction": float(th[0])}],
-            lambda th, o: {"rotor": int(o), "fraction": float(th[0])}, options=list(range(m))),
-        "payload": Candidate(
-            "payload", ["mass", *[f"mass_{n}" for n in hn]], a([0.1] + [0.05] * len(hn)),
-            a([0.0] + [-2.0] * len(hn)), a([2.0] + [2.0] * len(hn)),
-            lambda th, o: _payload(th, centre, horiz),
-            lambda th, o: {"mass": float(th[0]),
-                           "point": (centre + vec(th[1:] / max(th[0], 1e-9), horiz)).tolist()},
-            anchor=a([0.1] + [0.0] * len(hn))),
-        "stiffness_scale": Candidate(
-            "stiffness_scale", ["compliance"], a([0.2]), a([-0.8]), a([4.0]),
-            lambda th, o: [{"name": "stiffness_scale", "scale": float(1.0 / (1.0 + th[0]))}],
-            lambda th, o: {"scale": float(1.0 / (1.0 + th[0]))},
-            scan=[a([2.0 ** -(j / 4) - 1.0]) for j in (-4, -3, -2, -1, 1, 2, 3, 4)]),   # scale 2^(j/4)
-        "damping_scale": Candidate(
-            "damping_scale", ["excess"], a([0.3]), a([-1.0]), a([9.0]),
-            lambda th, o: [{"name": "damping_scale", "scale": float(max(1.0 + th[0], 0.0))}],
-            lambda th, o: {"scale": float(1.0 + th[0])}),
-        "wind": Candidate(
-            "wind", [f"q_{n}" for n in hn], a([1.0] * len(hn)), a([-25.0] * len(hn)), a([25.0] * len(hn)),
-            lambda th, o: [{"name": "wind", "velocity": vec(_speed(th), horiz)}],
-            lambda th, o: {"velocity": vec(_speed(th), horiz)},
-            base=lambda o: [{"name": "wind", "velocity": [0.0] * dim}]),
-        "imu_bias": Candidate(
-            "imu_bias", ["tilt_x", "tilt_z"] if dim == 3 else ["tilt"], a([0.01] * (2 if dim == 3 else 1)),
-            a([-0.2] * (2 if dim == 3 else 1)), a([0.2] * (2 if dim == 3 else 1)),
-            lambda th, o: [{"name": "imu_bias", "channel": "rot",
-                            "value": vec(th, [0, 2], 3) if dim == 3 else [float(th[0])]}],
-            lambda th, o: {"channel": "rot", "value": vec(th, [0, 2], 3) if dim == 3 else [float(th[0])]}),
-    }
-    if dim == 2:
-        cands.pop("rotor_reaction_torque")   # a 2D rotor axis lies in the plane
-    if names:
-        unknown = [n for n in names if n not in LIBRARY]
-        if unknown:
-            raise UserError(f"discrepancy.candidates: unknown {unknown}; choose from {sorted(LIBRARY)}")
-        return [cands[n] for n in names if n in cands]
-    return list(cands.values())
+def candidate(entry, drone) -> Candidate | None:
+    """The candidate of one ``discrepancy.candidates`` entry (a library name or a ``_target_``
+    dict), or None when the effect does not apply to this drone (a 2D rotor has no spin axis)."""
+    cls, fixed, head = resolve_effect(entry, "discrepancy.candidates")
+    spec = cls.fit_spec(drone)
+    if spec is None:
+        if "_target_" in head and not cls.fit_params:
+            raise UserError(f"discrepancy.candidates: {head['_target_']} declares nothing to fit: give the class "
+                            f"fit_params = {{argument: (lower, upper, step)}} or a fit_spec classmethod "
+                            f"(docs/discrepancy_workflow.md)")
+        return None
+    name = head.get("name") or getattr(cls, "name", None) or cls.__name__
+    kwargs = lambda th, o: {**head, **fixed, **spec.entry(np.asarray(th, dtype=float), o)}  # noqa: E731
+    report = spec.report or spec.entry
+    base = None
+    if spec.base is not None:
+        base = lambda o: [{**head, **fixed, **spec.base(o)}]  # noqa: E731
+    elif "_target_" in head:
+        # a user's effect at theta = 0 is what its declaration says is nothing; trust it only
+        # as far as a rollout shows: the reference is the effect at theta = 0, not the nominal
+        base = lambda o: [kwargs(np.zeros(len(spec.params)), o)]  # noqa: E731
+    a = lambda v: None if v is None else np.asarray(v, dtype=float)  # noqa: E731
+    return Candidate(name, list(spec.params), a(spec.steps), a(spec.lower), a(spec.upper),
+                     lambda th, o: [kwargs(th, o)], lambda th, o: report(np.asarray(th, dtype=float), o),
+                     list(spec.options), base, a(spec.anchor),
+                     None if spec.scan is None else [a(t) for t in spec.scan], float(spec.memory), spec.check)
 
 
-def _speed(q: np.ndarray) -> np.ndarray:
-    """w from the dynamic-pressure vector q = |w| w."""
-    n = np.linalg.norm(q)
-    return q / np.sqrt(n) if n > 0 else np.zeros_like(q)
+def library_candidates(drone, entries=None) -> list[Candidate]:
+    """Candidates for ``entries`` (names and ``_target_`` dicts); None or [] = the whole library.
+    A library effect that does not apply to the drone is left out when the library is implied
+    and an error when named."""
+    if not entries:
+        return [c for c in (candidate(n, drone) for n in LIBRARY) if c is not None]
+    out = []
+    for e in entries:
+        c = candidate(e, drone)
+        if c is None:
+            raise UserError(f"discrepancy.candidates: {e} does not apply to the {drone.dim}D drone {drone.name}")
+        out.append(c)
+    return out
 
 
-def _payload(th, centre, horiz):
-    mass = float(max(th[0], 0.0))
-    point = np.array(centre, dtype=float)
-    if mass > 0:
-        point[horiz] += th[1:] / mass
-    return [{"name": "payload", "mass": mass, "point": point.tolist()}]
+def history_seconds(cands: list[Candidate], floor: float) -> float:
+    """Seconds of past commands each window replays: ``floor`` (discrepancy.history) or what
+    the slowest candidate needs, whichever is longer. From a zero actuator state a slow lag
+    predicts worse than no lag at all, and its fit comes out too short."""
+    return max([float(floor)] + [c.memory for c in cands])

@@ -9,8 +9,10 @@ Uncertainty: bootstrap over training windows of the final linear step.
 
 Name: for each refined candidate, the held-out per-window loss drop d_w = L_nominal,w -
 L_candidate,w. A candidate passes when mean(d) exceeds z * SE (z from a Bonferroni-corrected
-one-sided alpha over every candidate tried, windows taken as independent) and the relative
-drop exceeds ``min_gain``. No pass: ``none``. The best passing candidate wins; any other
+one-sided alpha over every candidate tried, windows taken as independent), the relative
+drop exceeds ``min_gain`` and the fit is physical: no parameter on a physical bound and the
+effect's own check met (a fit that needs more than physics allows is reported, with why, and
+not accepted). A second effect passes the same test on the residual the first leaves. No pass: ``none``. The best passing candidate wins; any other
 passing candidate whose held-out loss is not significantly worse than the winner's (paired
 test, same z) is reported as a tie.
 """
@@ -38,6 +40,7 @@ class Fit:
     held_loss: float = np.nan
     held_w: np.ndarray | None = None   # per held-out window loss
     refined: bool = False
+    flags: list = field(default_factory=list)   # why the fit is not physical (Candidate.flags)
     evidence: dict = field(default_factory=dict)
 
 
@@ -152,6 +155,7 @@ def refine(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effect
     fit.held_w = window_loss(rh, sigma)
     fit.held_loss = float(np.mean(fit.held_w))
     fit.refined = True
+    fit.flags = cand.flags(theta, fit.option)
     fit.evidence["held_residual"] = rh
     return fit
 
@@ -183,6 +187,7 @@ def polish(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effect
         fit.train_loss = loss
         fit.held_w = window_loss(rh, sigma)
         fit.held_loss = float(np.mean(fit.held_w))
+        fit.flags = cand.flags(theta, fit.option)
         fit.evidence["held_residual"] = rh
     return fit
 
@@ -200,10 +205,10 @@ def decide(fits: list[Fit], held_nominal_w: np.ndarray, n_tried: int, alpha: flo
             d = held_nominal_w - f.held_w
             se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
             gain = float(np.mean(d) / L0) if L0 > 0 else 0.0
-            ok = bool(np.mean(d) > z * se and gain > min_gain)
+            ok = bool(np.mean(d) > z * se and gain > min_gain and not f.flags)
             row.update(train_loss=f.train_loss, held_loss=f.held_loss, held_drop=float(np.mean(d)),
                        held_drop_se=se, relative_gain=gain, z_score=float(np.mean(d) / se) if se > 0 else np.inf,
-                       passes=ok)
+                       not_physical=f.flags, passes=ok)
             if ok:
                 passing.append(f)
         rows.append(row)

@@ -26,7 +26,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write, cached_arrays, key_of
-from sdexp.discrepancy.candidates import library_candidates
+from sdexp.discrepancy.candidates import history_seconds, library_candidates
 from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
 from sdexp.discrepancy.localize import heatmap, localize, noise_floor, unexplained_cell
 from sdexp.discrepancy.logs import read_logs
@@ -46,9 +46,16 @@ def _plain(x):
         asdict(x) if hasattr(x, "__dataclass_fields__") else x)
 
 
-def steps_of(dcfg, dt: float) -> tuple[int, int, int]:
+def steps_of(dcfg, dt: float, history: float) -> tuple[int, int, int]:
+    """(horizon, stride, history) in control steps; ``history`` in seconds (history_of)."""
     return (max(1, int(round(dcfg.horizon / dt))), max(1, int(round(dcfg.stride / dt))),
-            int(round(dcfg.history / dt)))
+            int(round(history / dt)))
+
+
+def history_of(drone, dcfg) -> float:
+    """Seconds of commands every window replays: discrepancy.history or what the slowest
+    candidate needs (candidates.history_seconds)."""
+    return history_seconds(library_candidates(drone, list(dcfg.candidates) or None), dcfg.history)
 
 
 def model_key(drone_cfg, sim_cfg, noise_cfg) -> dict:
@@ -62,7 +69,7 @@ def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: s
     from sdexp.discrepancy.logs import channel_names
 
     dt = float(_plain(sim_cfg)["control_dt"])
-    h, stride, hist = steps_of(dcfg, dt)
+    h, stride, hist = steps_of(dcfg, dt, history_of(drone, dcfg))
     rec = _plain(dcfg.record)
     payload = {**model_key(drone_cfg, sim_cfg, noise_cfg), "record": rec, "h": h, "stride": stride,
                "hist": hist, "average": int(dcfg.start_average), "flights": int(dcfg.floor_flights), "seed": seed}
@@ -109,7 +116,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
                         f"simulator runs at 1/sim.control_dt = {1 / dt:g} Hz")
     if len(logs.flights) < 2:
         raise UserError(f"{logs.folder}: {len(logs.flights)} flight(s); at least 2 are needed to hold one out")
-    h, stride, hist = steps_of(dcfg, dt)
+    cands = library_candidates(drone, list(dcfg.candidates) or None)
+    h, stride, hist = steps_of(dcfg, dt, history_seconds(cands, dcfg.history))
     w_all = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
     too_short = [f.name for f, s in zip(logs.flights, w_all.starts) if len(s) == 0]
     if too_short:
@@ -144,7 +152,6 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
                            dcfg.unexplained_ratio, dcfg.alpha)
 
     # 2. name, one effect at a time
-    cands = library_candidates(drone, list(dcfg.candidates) or None)
     base, accepted, rounds = [], [], []
     held_nom_w = window_loss(r_held, sigma)
     cur_train, cur_held, cur_held_w = r_train, r_held, held_nom_w

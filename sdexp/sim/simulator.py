@@ -77,35 +77,52 @@ class Simulator:
         self.threads = min(self.threads, numba.config.NUMBA_NUM_THREADS)
         self._delay_steps = int(round(n.delay / c.control_dt)) if n.enabled else 0
         self._rest_extent = extent(fem.rest)
-        self.body = None
+        self._start = [e for e in self.effects if overrides(e, "start")]
+        self.seed, self.flight = seed, -1
+        self._new_body()   # setup may read the body (rest pose, vertex sets)
         for e in self.effects:
             e.setup(self)
         self.reset()
 
     # -------------------------------------------------------------------------------- state
-    def reset(self, position=None) -> Readings:
+    def _new_body(self) -> None:
         c = self.cfg
         boxes = list(c.obstacles)
         self.body = Body(self.fem, self.threads, self.drone.rotors, c.ground,
                          [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
                          c.friction)
-        if position is not None:
-            self.body.x += np.asarray(position, dtype=float)
         self.t = 0.0
         self.failure: Failure | None = None
         self.applied = np.zeros(self.drone.num_rotors)
         self._queue = deque([np.zeros(self.drone.num_rotors)] * self._delay_steps)
+
+    def reset(self, position=None, flight: int | None = None) -> Readings:
+        """A new flight: the undeformed drone at rest, moved by ``position``. Effects draw their
+        random parts for it (``start``) from a generator seeded by (simulator seed, flight
+        index): the next index unless ``flight`` is given, so a recorder that names its flights
+        gets the same draws whatever ran before."""
+        self._new_body()
+        if position is not None:
+            self.body.x += np.asarray(position, dtype=float)
+        self.flight = self.flight + 1 if flight is None else int(flight)
+        if self._start:
+            rng = np.random.default_rng([abs(int(self.seed)), self.flight])
+            for e in self._start:
+                e.start(self, rng)
         for e in self.effects:
             e.reset(self)
         return self.readings()
 
     def set_state(self, x, v, rotation=None, t: float = 0.0, history=()) -> None:
-        """Re-initialise from a given state: vertex positions and velocities, the element
-        rotations warm-started at ``rotation`` (3x3, 3D; else identity), and the actuation chain
-        (output delay, effect states such as motor lag) replayed with the past commands
-        ``history`` (oldest first) without moving the body."""
+        """Re-initialise within the current flight from a given state: vertex positions and
+        velocities, the element rotations warm-started at ``rotation`` (3x3, 3D; else identity),
+        and the actuation chain (output delay, effect states such as motor lag) replayed with the
+        past commands ``history`` (oldest first) without moving the body. Effects keep their
+        flight's draws (a gust sequence is a function of time) and only ``reset``."""
         from sdexp.sensing.rotations import quat_from_matrix
-        self.reset()
+        self._new_body()
+        for e in self.effects:
+            e.reset(self)
         self.body.x[:] = x
         self.body.v[:] = v
         if rotation is not None and self.drone.dim == 3:

@@ -262,3 +262,58 @@ def test_set_state_replays_the_actuation_chain(plate):
     assert sim.t == 2.0 and np.allclose(sim.x, plate.fem.rest + 1.0)
     assert np.allclose(sim.effects[0].state, 1.0, atol=1e-3)   # the lag has converged on the history
     assert all(np.allclose(q, 1.0) for q in sim._queue)
+
+
+class Recorder(Effect):
+    """Records the lifecycle calls it sees."""
+    name = "recorder"
+
+    def __init__(self):
+        self.calls = []
+
+    def setup(self, sim):
+        self.calls.append(("setup", sim.body is not None))
+
+    def start(self, sim, rng):
+        self.calls.append(("start", sim.flight, float(rng.random())))
+
+    def reset(self, sim):
+        self.calls.append(("reset",))
+
+
+def test_lifecycle_setup_sees_the_body_start_once_a_flight_with_its_own_draws(plate):
+    rec = Recorder()
+    sim = Simulator(plate, sim_cfg(), noise_cfg(**QUIET), seed=5, effects=[rec])
+    assert rec.calls[0] == ("setup", True)                 # the body exists at setup
+    sim.set_state(plate.fem.rest, np.zeros_like(plate.fem.rest))    # a window: reset, no new draw
+    sim.reset()
+    sim.reset(flight=0)
+    kinds = [c[0] for c in rec.calls]
+    assert kinds == ["setup", "start", "reset", "reset", "start", "reset", "start", "reset"]
+    starts = [c for c in rec.calls if c[0] == "start"]
+    assert [c[1] for c in starts] == [0, 1, 0]
+    assert starts[0][2] == starts[2][2] != starts[1][2]      # flight 0 draws the same, flight 1 not
+    other = Recorder()
+    Simulator(plate, sim_cfg(), noise_cfg(**QUIET), seed=6, effects=[other])
+    assert other.calls[1][2] != starts[0][2]                 # another seed, another draw
+
+
+def test_gusty_wind_is_a_gauss_markov_process_redrawn_per_flight_kept_in_a_window(beam):
+    std, T = 1.5, 0.5
+    sim = Simulator(beam, sim_cfg(effects=[{"name": "wind", "velocity": [2.0, 0.0], "c": 0.1,
+                                            "gust_std": std, "gust_time": T}]), noise_cfg(**QUIET), seed=3)
+    wind = sim.effects[0]
+    ts = np.arange(0, 400.0, 0.01)
+    sim.t = 0.0
+    n = np.array([wind.air(type("S", (), {"t": t})) for t in ts])[:, 0] - 2.0
+    assert np.std(n) == pytest.approx(std, rel=0.1)
+    lag = int(T / 0.01)
+    corr = np.corrcoef(n[:-lag], n[lag:])[0, 1]
+    assert corr == pytest.approx(np.exp(-1), abs=0.08)       # correlation e^-1 after one time constant
+    first = wind.air(type("S", (), {"t": 1.23}))
+    sim.set_state(beam.fem.rest, np.zeros_like(beam.fem.rest), t=1.23)
+    assert np.array_equal(wind.air(sim), first)              # a window keeps its flight's gusts
+    sim.reset()
+    assert not np.array_equal(wind.air(type("S", (), {"t": 1.23})), first)   # a new flight draws anew
+    with pytest.raises(UserError, match="gust_std"):
+        build_effects([{"name": "wind", "gust_std": -1.0}])

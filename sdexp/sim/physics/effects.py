@@ -7,8 +7,14 @@ objects; the :class:`Simulator` calls their hooks:
 
 - ``modify_model(fem, damping, drone) -> (fem, damping)``: once, before the stable substep is
   computed (mass, stiffness, damping changes);
-- ``setup(sim)``: once, after the model is final (precompute vertex sets, areas);
-- ``reset(sim)``: at every reset / re-initialisation (internal states such as motor speed);
+- ``setup(sim)``: once, after the model is final and ``sim.body`` exists (precompute vertex
+  sets, areas);
+- ``start(sim, rng)``: at the start of every flight (``sim.reset``), with a generator seeded by
+  the simulator's seed and the flight's index: draw a random effect's realisation here (a gust
+  sequence), so each flight differs, every run repeats, and a window re-initialisation inside
+  the flight (``sim.set_state``) does not redraw it;
+- ``reset(sim)``: at every flight start and every re-initialisation (internal states such as
+  motor speed);
 - ``actuate(thrust, sim) -> thrust``: commanded -> applied thrust, once per control step, after
   the output delay FIFO and the rotor noise;
 - ``body_forces(sim, f)``: add external forces (N) on the vertices into ``f`` (nv, dim), given
@@ -27,8 +33,8 @@ from __future__ import annotations
 import importlib
 import inspect
 from collections import deque
-from dataclasses import replace
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
 
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -36,17 +42,58 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from sdexp.errors import UserError
 
 
+@dataclass
+class FitSpec:
+    """How the discrepancy workflow fits an effect (sdexp.discrepancy.candidates), declared by
+    the effect itself: the same protocol for the library's effects and a user's ``_target_``.
+
+    theta are the estimated parameters, with theta = 0 the nominal simulator (or ``base``);
+    ``lower``/``upper`` are physical bounds (a drag never pushes, a bias stays within what a
+    sensor can be off by): a fit that ends on one is reported and not accepted. The library
+    parametrises so that the predictions move about linearly in theta (the fit linearises
+    once); ``entry(theta, option)`` gives the effect's constructor arguments."""
+    params: list                          # names of theta's entries
+    steps: list                           # finite-difference steps: typical strengths
+    lower: list
+    upper: list
+    entry: Callable                       # (theta, option) -> constructor kwargs
+    report: Callable | None = None        # (theta, option) -> physical parameters; None = entry
+    options: list = field(default_factory=lambda: [None])   # discrete choices fitted by enumeration
+    base: Callable | None = None          # option -> kwargs at theta = 0 when that is not nominal
+    anchor: list | None = None            # where the other columns are differenced
+    scan: list | None = None              # theta values tried first (responses far from linear)
+    memory: float = 0.0                   # s of past commands a prediction must replay (lags)
+    check: Callable | None = None         # (theta, option) -> why the fit is not physical, or None
+
+
 class Effect:
-    """Base class of every effect; each hook is a no-op here."""
+    """Base class of every effect; each hook is a no-op here.
+
+    To be a discrepancy candidate, an effect declares what can be fitted: ``fit_params`` =
+    {constructor argument: (lower, upper, typical step)} with physical bounds (theta is the
+    value itself, 0 must mean "no effect"), or, for a re-parametrisation, a ``fit_spec``
+    classmethod returning a :class:`FitSpec`."""
 
     name = "effect"
     description = ""
     equation = ""
+    fit_params: dict = {}
+
+    @classmethod
+    def fit_spec(cls, drone) -> FitSpec | None:
+        if not cls.fit_params:
+            return None
+        names = list(cls.fit_params)
+        lo, hi, step = (list(v) for v in zip(*(cls.fit_params[n] for n in names)))
+        return FitSpec(names, step, lo, hi, lambda th, o: {n: float(v) for n, v in zip(names, th)})
 
     def modify_model(self, fem, damping: float, drone):
         return fem, damping
 
     def setup(self, sim) -> None:
+        pass
+
+    def start(self, sim, rng: np.random.Generator) -> None:
         pass
 
     def reset(self, sim) -> None:
@@ -110,12 +157,38 @@ def _vec(value, dim: int, key: str, name: str) -> np.ndarray:
     return v
 
 
+def _horizontal(dim: int) -> list[int]:
+    return [0, 2] if dim == 3 else [0]
+
+
+def _axis_names(dim: int) -> list[str]:
+    return ["x", "z"] if dim == 3 else ["x"]
+
+
+def _inside(points: np.ndarray):
+    """A test whether a horizontal point lies within the convex hull of ``points``."""
+    if points.shape[1] == 1:
+        lo, hi = points.min(), points.max()
+        return lambda q: bool(lo <= q[0] <= hi)
+    from scipy.spatial import Delaunay
+    tri = Delaunay(points[np.unique(points.round(6), axis=0, return_index=True)[1]])
+    return lambda q: bool(tri.find_simplex(np.asarray(q, dtype=float)) >= 0)
+
+
 # ------------------------------------------------------------------------------ actuator effects
 
 class MotorLag(Effect):
     name = "motor_lag"
     description = "Each rotor's thrust follows its command through a first-order lag (motor and propeller inertia)."
     equation = "tau dT/dt = T_cmd - T; applied = mean of T over the control step (exact for a held command)"
+
+    fit_params = {"tau": (0.0, 0.3, 0.03)}   # s: slower than any multirotor motor and propeller
+
+    @classmethod
+    def fit_spec(cls, drone):
+        spec = super().fit_spec(drone)
+        spec.memory = 3 * cls.fit_params["tau"][1]   # a window replays 3 time constants of the slowest lag
+        return spec
 
     def __init__(self, tau: float = 0.05):
         if tau < 0:
@@ -139,6 +212,15 @@ class ActuationDelay(Effect):
     name = "actuation_delay"
     description = "An extra transport delay between command and rotor (radio, ESC), fractional steps interpolated."
     equation = "T(t) = T_cmd(t - d), linear between control steps"
+
+    fit_params = {"delay": (0.0, 0.3, 0.02)}
+
+    @classmethod
+    def fit_spec(cls, drone):
+        spec = super().fit_spec(drone)
+        # a delay shifts whole responses in time: no linearisation at 0 sees a long one
+        spec.scan, spec.memory = [[0.03], [0.06], [0.12]], cls.fit_params["delay"][1]
+        return spec
 
     def __init__(self, delay: float = 0.02):
         if delay < 0:
@@ -165,6 +247,13 @@ class ThrustLoss(Effect):
     description = "One rotor produces a fraction less thrust than commanded (worn or damaged propeller)."
     equation = "T_r = (1 - eta) T_cmd,r for the affected rotor r"
 
+    @classmethod
+    def fit_spec(cls, drone):
+        # which rotor is a discrete choice, fitted by trying each
+        return FitSpec(["fraction"], [0.1], [0.0], [0.9],
+                       lambda th, o: {"rotor": int(o), "fraction": float(th[0])},
+                       options=list(range(drone.num_rotors)))
+
     def __init__(self, rotor: int = 0, fraction: float = 0.2):
         if not 0 <= fraction < 1:
             raise UserError(f"sim.effects: thrust_loss.fraction = {fraction} must be in [0, 1)")
@@ -185,6 +274,12 @@ class GroundEffect(Effect):
     name = "ground_effect"
     description = "A rotor close to the ground makes more thrust (Cheeseman-Bennett image-vortex model)."
     equation = "T = T_cmd / (1 - (R / 4h)^2), h = rotor height above the ground, clamped at h >= R/2"
+
+    @classmethod
+    def fit_spec(cls, drone):
+        # theta = R^2: the thrust gain (R / 4h)^2 is linear in it; R up to 3 m, a drone's size
+        return FitSpec(["radius_sq"], [1.0], [0.0], [9.0],
+                       lambda th, o: {"radius": float(np.sqrt(max(th[0], 0.0)))})
 
     def __init__(self, radius: float = 0.5, ground: float = 0.0):
         if radius < 0:
@@ -207,6 +302,13 @@ class RotorReactionTorque(Effect):
                    "torque on the whole body, or a couple on a motor-mount disc (mount_radius).")
     equation = ("tau_r = -s_r k T_r n_r (s_r = +-1 spin, alternating around the centre), as mass-weighted "
                 "forces m_i a n_r x r_i about the centre of mass (or a couple on a mount disc)")
+
+    @classmethod
+    def fit_spec(cls, drone):
+        if drone.dim != 3:
+            return None   # a 2D rotor axis lies in the plane
+        # k's sign is the spin direction: both are physical
+        return FitSpec(["k"], [0.02], [-0.5], [0.5], lambda th, o: {"k": float(th[0])})
 
     def __init__(self, k: float = 0.02, spin: Any = None, mount_radius: float | None = None):
         self.k = float(k)
@@ -270,7 +372,11 @@ class RotorDrag(Effect):
                    "(the standard multirotor drag model).")
     equation = "F_r = -k (v_r - (v_r . n_r) n_r), v_r the rotor patch velocity, spread over the patch"
 
+    fit_params = {"k": (0.0, 5.0, 0.1)}   # N s/m; a drag never pushes
+
     def __init__(self, k: float = 0.1):
+        if k < 0:
+            raise UserError(f"sim.effects: rotor_drag.k = {k} must be >= 0 N s/m (drag resists motion)")
         self.k = float(k)
 
     def body_forces(self, sim, f):
@@ -288,6 +394,8 @@ class QuadraticDrag(Effect):
     name = "quadratic_drag"
     description = "Air drag on the surface, quadratic in the velocity relative to still air, per area-weighted vertex."
     equation = "f_i = -c a_i |v_i| v_i, c = rho C_d / 2 (N s^2/m^4), a_i the vertex's share of one side of the surface"
+
+    fit_params = {"c": (0.0, 2.0, 0.03)}  # rho C_d / 2 of a flat plate is ~0.7; never negative
 
     def __init__(self, c: float = 0.05):
         if c < 0:
@@ -309,24 +417,68 @@ class QuadraticDrag(Effect):
 
 class Wind(QuadraticDrag):
     name = "wind"
-    description = "Moving air (constant plus a sinusoidal gust) acting through the quadratic surface drag."
-    equation = "f_i = -c a_i |v_i - w(t)| (v_i - w(t)), w(t) = w + g sin(2 pi f t)"
+    description = ("Moving air acting through the quadratic surface drag: a mean velocity, an optional "
+                   "sinusoidal gust and optional random gusts (a first-order Gauss-Markov process, the "
+                   "low-order form of the Dryden turbulence model, redrawn for every flight).")
+    equation = ("f_i = -c a_i |v_i - w(t)| (v_i - w(t)), w(t) = w + g sin(2 pi f t) + n(t), "
+                "dn = -n / T dt + s sqrt(2 / T) dW per axis (std s, correlation time T)")
+
+    CHUNK = 1024   # gust samples drawn at a time: the sequence does not depend on how far a run looks
+
+    @classmethod
+    def fit_spec(cls, drone):
+        # theta = the dynamic-pressure vector |w| w of a horizontal mean wind (the drag is
+        # linear in it), up to 5 m/s along each axis; theta = 0 is still air with the wind's drag
+        dim, horiz = drone.dim, _horizontal(drone.dim)
+
+        def entry(th, o):
+            v, n = np.zeros(dim), np.linalg.norm(th)
+            v[horiz] = th / np.sqrt(n) if n > 0 else 0.0
+            return {"velocity": v.tolist()}
+        k = len(horiz)
+        return FitSpec([f"q_{a}" for a in _axis_names(dim)], [1.0] * k, [-25.0] * k, [25.0] * k, entry,
+                       base=lambda o: {"velocity": [0.0] * dim})
 
     def __init__(self, velocity: Any = (1.0, 0.0, 0.0), c: float = 0.05, gust: Any = None,
-                 gust_freq: float = 0.0):
+                 gust_freq: float = 0.0, gust_std: float = 0.0, gust_time: float = 2.0):
         super().__init__(c)
+        if gust_std < 0 or gust_time <= 0:
+            raise UserError(f"sim.effects: wind.gust_std = {gust_std} must be >= 0 m/s and "
+                            f"wind.gust_time = {gust_time} > 0 s")
         self.velocity = np.asarray(velocity, dtype=float)
         self.gust = None if gust is None else np.asarray(gust, dtype=float)
         self.gust_freq = float(gust_freq)
+        self.gust_std, self.gust_time = float(gust_std), float(gust_time)
+        self._noise = None
 
     def setup(self, sim) -> None:
         super().setup(sim)
         d = sim.drone.dim
         self.velocity = _vec(self.velocity, d, "velocity", self.name)
         self.gust = np.zeros(d) if self.gust is None else _vec(self.gust, d, "gust", self.name)
+        self._dt = sim.cfg.control_dt
+
+    def start(self, sim, rng) -> None:
+        if self.gust_std > 0:
+            self._rng = rng
+            self._noise = self.gust_std * rng.standard_normal((1, sim.drone.dim))   # stationary start
+
+    def _random_gust(self, t: float) -> np.ndarray:
+        k = max(int(round(t / self._dt)), 0)
+        a = np.exp(-self._dt / self.gust_time)
+        while k >= len(self._noise):   # exact discretisation of the process, a chunk at a time
+            xi = self._rng.standard_normal((self.CHUNK, self._noise.shape[1]))
+            seq = np.empty_like(xi)
+            prev = self._noise[-1]
+            for j in range(self.CHUNK):
+                prev = a * prev + self.gust_std * np.sqrt(1 - a * a) * xi[j]
+                seq[j] = prev
+            self._noise = np.concatenate([self._noise, seq])
+        return self._noise[k]
 
     def air(self, sim):
-        return self.velocity + self.gust * np.sin(2 * np.pi * self.gust_freq * sim.t)
+        w = self.velocity + self.gust * np.sin(2 * np.pi * self.gust_freq * sim.t)
+        return w + self._random_gust(sim.t) if self._noise is not None else w
 
 
 # ------------------------------------------------------------------------------ model effects
@@ -335,6 +487,29 @@ class Payload(Effect):
     name = "payload"
     description = "An extra point mass carried at an offset (battery, camera), lumped on the nearest vertices."
     equation = "m_i += m / n for the n vertices within radius of the rest point (at least the nearest)"
+
+    @classmethod
+    def fit_spec(cls, drone):
+        # theta = (mass, first moments mass x horizontal offset from the centre of mass): the
+        # predictions are about linear in these; the point must lie over the body
+        rest, m = drone.fem.rest, drone.fem.mass
+        centre, horiz = m @ rest / m.sum(), _horizontal(drone.dim)
+        over_body = _inside(rest[:, horiz])
+
+        def point(th):
+            q = centre.copy()
+            if th[0] > 0:
+                q[horiz] += np.asarray(th[1:]) / th[0]
+            return q
+
+        def check(th, o):
+            q = point(th)
+            return None if th[0] <= 0 or over_body(q[horiz]) else f"point {np.round(q, 2).tolist()} is not over the body"
+        k = len(horiz)
+        return FitSpec(["mass", *[f"mass_{a}" for a in _axis_names(drone.dim)]], [0.1] + [0.05] * k,
+                       [0.0] + [-2.0] * k, [2.0] + [2.0] * k,
+                       lambda th, o: {"mass": float(max(th[0], 0.0)), "point": point(th).tolist()},
+                       anchor=[0.1] + [0.0] * k, check=check)
 
     def __init__(self, mass: float = 0.1, point: Any = None, radius: float = 0.3):
         if mass < 0:
@@ -357,6 +532,14 @@ class StiffnessScale(Effect):
     description = "The material is stiffer or softer than nominal (Young's modulus times a factor)."
     equation = "E = k E_nominal (both Lame parameters scale)"
 
+    @classmethod
+    def fit_spec(cls, drone):
+        # theta = the compliance change 1/scale - 1 (deflections are linear in it), scale 0.2-5;
+        # strong changes move the bending frequencies, so a scan of 2^(j/4) finds where to linearise
+        return FitSpec(["compliance"], [0.2], [-0.8], [4.0],
+                       lambda th, o: {"scale": float(1.0 / (1.0 + th[0]))},
+                       scan=[[2.0 ** -(j / 4) - 1.0] for j in (-4, -3, -2, -1, 1, 2, 3, 4)])
+
     def __init__(self, scale: float = 1.0):
         if scale <= 0:
             raise UserError(f"sim.effects: stiffness_scale.scale = {scale} must be > 0")
@@ -370,6 +553,10 @@ class DampingScale(Effect):
     name = "damping_scale"
     description = "The material (and air) dissipates more or less than nominal: mass-proportional damping times a factor."
     equation = "c = k c_nominal in m_i dv_i/dt = f_i - c m_i v_i"
+
+    @classmethod
+    def fit_spec(cls, drone):
+        return FitSpec(["excess"], [0.3], [-1.0], [9.0], lambda th, o: {"scale": float(max(1.0 + th[0], 0.0))})
 
     def __init__(self, scale: float = 1.0):
         if scale < 0:
@@ -389,6 +576,16 @@ class ImuBias(Effect):
     equation = "rot' = exp([b]x) rot (2D: theta + b); omega' = omega + b; pos' = pos + b; vel' = vel + b"
 
     CHANNELS = ("rot", "omega", "pos", "vel")
+
+    @classmethod
+    def fit_spec(cls, drone):
+        # a tilt of the attitude reference; an accelerometer offset b tilts it by b / g, and
+        # +-0.1 rad (+-1 m/s^2) is beyond an uncalibrated consumer MEMS part's zero-g offset
+        three = drone.dim == 3
+        value = (lambda th: [float(th[0]), 0.0, float(th[1])]) if three else (lambda th: [float(th[0])])
+        k = 2 if three else 1
+        return FitSpec(["tilt_x", "tilt_z"] if three else ["tilt"], [0.01] * k, [-0.1] * k, [0.1] * k,
+                       lambda th, o: {"channel": "rot", "value": value(th)})
 
     def __init__(self, channel: str = "rot", value: Any = (0.02, 0.0, 0.0), imus: Any = None):
         if channel not in self.CHANNELS:
@@ -431,30 +628,37 @@ LIBRARY: dict[str, type[Effect]] = {c.name: c for c in (
     ThrustLoss, Payload, StiffnessScale, DampingScale, ImuBias)}
 
 
-def _import(path: str):
+def _import(path: str, where: str):
     module, _, attr = path.rpartition(".")
     try:
         return getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError, ValueError) as err:
-        raise UserError(f"sim.effects: _target_ {path!r} cannot be imported: {err}") from None
+        raise UserError(f"{where}: _target_ {path!r} cannot be imported: {err}") from None
 
 
-# Ranges that a user's sim.effects entry must respect and that the constructors do not check,
-# because the discrepancy fits (sdexp.discrepancy.candidates) step their linear coefficients
-# through zero to either side: a config asks for the physical effect only.
-PHYSICAL = {
-    "rotor_drag": {"k": (lambda v: isinstance(v, (int, float)) and v >= 0, ">= 0 N s/m (drag resists motion)")},
-}
+def resolve_effect(entry, where: str) -> tuple[type, dict, dict]:
+    """(class, constructor arguments, head) of an entry: a library name, ``{name: ..., args}``
+    or ``{_target_: package.module.Class, args}``; head is the entry's identifying key."""
+    e = {"name": entry} if isinstance(entry, str) else dict(entry)
+    if "_target_" in e:
+        path = e.pop("_target_")
+        e.pop("name", None)
+        return _import(path, where), e, {"_target_": path}
+    name = e.pop("name", None)
+    if name not in LIBRARY:
+        field_ = f"{where}.name" if where.startswith("sim.effects") else where
+        raise UserError(f"{field_} = {name!r} is unknown: choose one of {sorted(LIBRARY)} or give a _target_ class")
+    return LIBRARY[name], e, {"name": name}
 
 
 def check_config_effects(entries) -> None:
     """sim.effects as a user wrote them: known names, known parameters, physical ranges."""
     if isinstance(entries, (DictConfig, ListConfig)):
         entries = OmegaConf.to_container(entries, resolve=True)
-    build_effects([dict(e) if isinstance(e, dict) else e for e in entries or []], physical=True)
+    build_effects([dict(e) if isinstance(e, dict) else e for e in entries or []])
 
 
-def build_effects(entries, physical: bool = False) -> list[Effect]:
+def build_effects(entries) -> list[Effect]:
     """Objects from ``sim.effects`` entries (dicts, DictConfigs or Effect instances)."""
     if isinstance(entries, (DictConfig, ListConfig)):
         entries = OmegaConf.to_container(entries, resolve=True)
@@ -467,16 +671,7 @@ def build_effects(entries, physical: bool = False) -> list[Effect]:
             e = OmegaConf.to_container(e, resolve=True)
         if not isinstance(e, dict):
             raise UserError(f"sim.effects[{k}] = {e!r}: expected {{name: ..., params}} or {{_target_: ...}}")
-        e = dict(e)
-        if "_target_" in e:
-            cls = _import(e.pop("_target_"))
-            e.pop("name", None)
-        else:
-            name = e.pop("name", None)
-            if name not in LIBRARY:
-                raise UserError(f"sim.effects[{k}].name = {name!r} is unknown: choose one of "
-                                f"{sorted(LIBRARY)} or give a _target_ class")
-            cls = LIBRARY[name]
+        cls, e, _ = resolve_effect(e, f"sim.effects[{k}]")
         label = getattr(cls, "name", getattr(cls, "__name__", str(cls)))
         try:
             allowed = [q for q in inspect.signature(cls).parameters if q not in ("self", "args", "kwargs")]
@@ -486,11 +681,10 @@ def build_effects(entries, physical: bool = False) -> list[Effect]:
         if unknown:
             raise UserError(f"sim.effects[{k}].{unknown[0]} is not a parameter of {label}: allowed "
                             f"{', '.join(allowed) or 'none'}")
-        for q, (ok, text) in (PHYSICAL.get(label, {}) if physical else {}).items():
-            if q in e and not ok(e[q]):
-                raise UserError(f"sim.effects[{k}].{q} = {e[q]!r} is not physical for {label}: allowed {text}")
         try:
             obj = cls(**e)
+        except UserError as err:   # a value out of the effect's physical range
+            raise UserError(f"sim.effects[{k}] ({label}): {str(err).removeprefix('sim.effects: ')}") from None
         except TypeError as err:
             raise UserError(f"sim.effects[{k}] ({label}): {err}; allowed parameters "
                             f"{', '.join(allowed or [])}") from None

@@ -1,0 +1,82 @@
+"""One candidate protocol for library and user effects: declarations, physical bounds, the
+history a slow candidate needs, and a user's own effect named from logs."""
+import numpy as np
+import pytest
+
+from sdexp.discrepancy.candidates import candidate, history_seconds, library_candidates
+from sdexp.discrepancy.fit import Fit, decide
+from sdexp.errors import UserError
+from sdexp.sim.physics.effects import LIBRARY, Effect
+from tests.discrepancy.test_workflow import record, workflow
+
+
+class Undeclared(Effect):
+    name = "undeclared"
+
+    def __init__(self, k: float = 0.0):
+        self.k = k
+
+
+def test_every_library_effect_declares_its_fit_and_builds_entries_the_simulator_takes(leaf):
+    from sdexp.sim.physics.effects import build_effects
+    cands = library_candidates(leaf)
+    assert sorted(c.name for c in cands) == sorted(LIBRARY)
+    for c in cands:
+        assert np.all(c.lower <= 0) and np.all(c.upper >= 0) and np.all(c.lower < c.upper)
+        mid = np.clip(c.steps, c.lower, c.upper)
+        build_effects(c.build(mid, c.options[0]))     # a fitted value is a valid effect
+
+
+def test_physical_bounds_flag_a_fit_that_needs_more_than_physics_allows(leaf):
+    drag = candidate("quadratic_drag", leaf)
+    assert drag.lower[0] == 0.0                        # no negative drag
+    assert drag.flags(np.array([0.0]), None) == []     # nominal: on a zero bound, not a flag
+    assert "at its upper bound" in drag.flags(drag.upper.copy(), None)[0]
+    bias = candidate("imu_bias", leaf)
+    assert bias.upper[0] <= 0.1                         # a tilt an accelerometer can be off by
+    pay = candidate("payload", leaf)
+    assert pay.flags(np.array([0.2, 0.0, 0.0]), None) == []
+    far = np.array([0.2, 0.2 * 5.0, 0.0])               # 5 m from the centre: off the 2.4 m leaf
+    assert any("not over the body" in f for f in pay.flags(far, None))
+
+
+def test_a_flagged_fit_does_not_pass_however_much_it_helps():
+    held_nominal = np.full(40, 2.0)
+    good = Fit("a", None, np.array([0.1]), np.zeros(1), {}, [], 0.0, refined=True,
+               held_w=np.full(40, 1.0) + np.linspace(0, 0.01, 40), held_loss=1.0)
+    bound = Fit("b", None, np.array([5.0]), np.zeros(1), {}, [], 0.0, refined=True,
+                held_w=np.full(40, 0.5) + np.linspace(0, 0.01, 40), held_loss=0.5, flags=["k at its upper bound 5"])
+    verdict, best, ties, rows, _ = decide([good, bound], held_nominal, 2, 0.05, 0.02)
+    assert best is good and verdict == "effect"
+    row = next(r for r in rows if r["candidate"] == "b")
+    assert not row["passes"] and row["not_physical"] == ["k at its upper bound 5"]
+
+
+def test_user_effects_are_candidates_by_target_and_errors_name_the_fix(leaf):
+    tilt = candidate({"_target_": "sdexp.discrepancy.bench.RotorTilt", "rotor": 1}, leaf)
+    assert tilt.name == "rotor_tilt" and tilt.params == ["angle"]
+    assert tilt.build(np.array([0.1]), None) == [{"_target_": "sdexp.discrepancy.bench.RotorTilt",
+                                                  "rotor": 1, "angle": 0.1}]
+    assert tilt.base(None)[0]["angle"] == 0.0          # the reference is the effect at theta = 0
+    with pytest.raises(UserError, match="fit_params"):
+        candidate({"_target_": "tests.discrepancy.test_candidates.Undeclared"}, leaf)
+    with pytest.raises(UserError, match="choose one of"):
+        candidate("motor_lagg", leaf)
+    with pytest.raises(UserError, match="cannot be imported"):
+        candidate({"_target_": "nowhere.Effect"}, leaf)
+
+
+def test_windows_replay_several_time_constants_of_the_slowest_lag(leaf):
+    lag = candidate("motor_lag", leaf)
+    assert history_seconds([lag], 0.3) == pytest.approx(3 * lag.upper[0])
+    assert history_seconds([candidate("payload", leaf)], 0.3) == 0.3
+
+
+def test_a_users_own_hypothesis_is_named_from_the_logs(tmp_path, small_cfg, leaf):
+    cfg = small_cfg.copy()
+    user = {"_target_": "sdexp.discrepancy.bench.RotorTilt", "rotor": 0}
+    cfg.discrepancy.candidates = ["motor_lag", "payload", user]
+    record(cfg, leaf, tmp_path / "logs", [{**user, "angle": 0.2}], seed=21)
+    rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
+    assert rep["verdict"] in ("effect", "tie") and rep["effects"][0]["name"] == "rotor_tilt"
+    assert rep["effects"][0]["params"]["angle"] == pytest.approx(0.2, rel=0.5)
