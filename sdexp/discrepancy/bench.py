@@ -19,7 +19,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write
-from sdexp.sim.physics.effects import Effect, patch_means, rotor_normals
+from sdexp.discrepancy import bench_effects
 
 log = logging.getLogger(__name__)
 
@@ -41,27 +41,6 @@ STRENGTHS = {
 }
 
 COMBOS = [("rotor_drag", "motor_lag"), ("payload", "imu_bias"), ("wind", "ground_effect")]
-
-
-class RotorTilt(Effect):
-    """Outside the library (an ``unmodelled`` scenario): rotor 0 is mounted tilted by ``angle``
-    about its patch's local horizontal, so part of its thrust pushes sideways."""
-    name = "rotor_tilt"
-    fit_params = {"angle": (-0.5, 0.5, 0.05)}   # rad: what a user declares to make it a candidate
-
-    def __init__(self, angle: float = 0.15, rotor: int = 0):
-        self.angle, self.rotor = float(angle), int(rotor)
-
-    def body_forces(self, sim, f):
-        r = sim.drone.rotors
-        n = rotor_normals(sim.body.x, r)[self.rotor]
-        side = np.zeros_like(n)
-        side[0] = 1.0
-        side -= (side @ n) * n
-        side /= np.linalg.norm(side)
-        i0, i1 = r.vert_ptr[self.rotor], r.vert_ptr[self.rotor + 1]
-        F = sim.applied[self.rotor] * np.sin(self.angle) * side
-        f[r.verts[i0:i1]] += F * r.weights[i0:i1, None]
 
 
 def effect_entry(name: str, level: int, rng, drone) -> dict:
@@ -94,7 +73,10 @@ def effect_entry(name: str, level: int, rng, drone) -> dict:
 
 
 def scenarios(drone, names, seeds: int, nulls: int, combos: bool, unmodelled: int, seed0: int = 0,
-              levels=(0, 1)) -> list[dict]:
+              levels=(0, 1), variants: int = 0) -> list[dict]:
+    """Library effects (``names`` x ``levels`` x ``seeds``), ``nulls``, two-effect ``combos``,
+    and per seed (``variants``, ``unmodelled``) every outside-the-library effect of
+    sdexp.discrepancy.bench_effects, with or without a fair library answer."""
     out = []
     k = 0
     for name in names:
@@ -114,11 +96,18 @@ def scenarios(drone, names, seeds: int, nulls: int, combos: bool, unmodelled: in
                         "effects": [effect_entry(a, 1, rng, drone), effect_entry(b, 1, rng, drone)],
                         "seed": seed0 + 1000 + k})
             k += 1
+    for s in range(variants):
+        rng = np.random.default_rng([seed0, k])
+        for vid, answer, entry in bench_effects.variants(drone, rng):
+            out.append({"id": f"{vid}-{s}", "kind": "variant", "truth": [answer], "effects": [entry],
+                        "seed": seed0 + 1000 + k})
+            k += 1
     for s in range(unmodelled):
-        out.append({"id": f"rotor_tilt-{s}", "kind": "unmodelled", "truth": ["rotor_tilt"],
-                    "effects": [{"_target_": "sdexp.discrepancy.bench.RotorTilt", "angle": 0.12 + 0.06 * s,
-                                 "rotor": s % drone.num_rotors}], "seed": seed0 + 1000 + k})
-        k += 1
+        rng = np.random.default_rng([seed0, k])
+        for uid, entry in bench_effects.unmodelled(drone, rng):
+            out.append({"id": f"{uid}-{s}", "kind": "unmodelled", "truth": [uid], "effects": [entry],
+                        "seed": seed0 + 1000 + k})
+            k += 1
     return out
 
 
@@ -221,6 +210,7 @@ def summarize(table: pd.DataFrame) -> dict:
     null = table[table.kind == "null"]
     combo = table[table.kind == "combo"]
     unmod = table[table.kind == "unmodelled"]
+    variant = table[table.kind == "variant"]
     effect = table[table.kind.isin(["single", "combo"])]
     red = effect.gap_reduction.fillna(0.0).clip(upper=1.0)
     oracle = effect.oracle_gap_reduction if "oracle_gap_reduction" in effect else pd.Series(dtype=float)
@@ -241,6 +231,11 @@ def summarize(table: pd.DataFrame) -> dict:
         "combo_both_found": float(np.mean([set(n.split("+")) == set(t.split("+")) for n, t in
                                            zip(combo.named, combo.truth)])) if len(combo) else None,
         "unmodelled_answered_unexplained": float(np.mean(unmod.verdict == "unexplained")) if len(unmod) else None,
+        # a real effect missed silently: no effect named and nothing reported above the floor
+        "unmodelled_answered_none": float(np.mean(unmod.verdict == "none")) if len(unmod) else None,
+        "variant_fair_answer": float(np.mean(variant.top1 == variant.truth)) if len(variant) else None,
+        "per_variant_answer": dict(zip(variant.id, variant.named)) if len(variant) else {},
+        "per_unmodelled_answer": dict(zip(unmod.id, unmod.verdict + ":" + unmod.named)) if len(unmod) else {},
         "median_gap_reduction_vs_floor": float(np.median(red)) if len(red) else None,
         # against the gap the true effects close (scenarios where they close any), unnamed = 0
         "median_gap_reduction": float(np.median(oracle[measurable].clip(lower=-1.0))) if measurable.any() else None,
@@ -260,7 +255,7 @@ def summarize(table: pd.DataFrame) -> dict:
 
 
 def confusion(table: pd.DataFrame) -> pd.DataFrame:
-    t = table[table.kind.isin(["single", "null", "unmodelled"])]
+    t = table[table.kind.isin(["single", "null", "variant", "unmodelled"])]
     return pd.crosstab(t.truth, t.top1).rename_axis(index="truth", columns="named")
 
 
@@ -296,7 +291,8 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     if drone.dim == 2 and "rotor_reaction_torque" in names:
         names.remove("rotor_reaction_torque")
     scs = scenarios(drone, names, int(params.seeds), int(params.nulls), bool(params.combos),
-                    int(params.unmodelled), seed, tuple(params.get("levels") or (0, 1)))
+                    int(params.unmodelled), seed, tuple(params.get("levels") or (0, 1)),
+                    int(params.get("variants") or 0))
     prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)   # cache it once for every worker
     from sdexp.config import DiscrepancyConfig, DroneConfig, NoiseConfig, SimConfig
     # detached structured copies: what the spawned workers need, and nothing of the root config

@@ -209,7 +209,7 @@ def record_flights(drone, sim_cfg, noise_cfg, out_dir: Path, flights: int, secon
         rng = np.random.default_rng([seed, i])
         sim.rng = np.random.default_rng([seed, i, 1])
         off = start_pose(drone, height)
-        sim.reset(off)
+        sim.reset(off, flight=i)   # the flight's random effects (gusts) drawn for flight i
         pilot.reset()
         home = sim.state(noisy=False).p
         segs = plan_flight(drone, rng, seconds, dt, manoeuvres, home, ground, amplitude)

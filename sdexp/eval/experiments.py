@@ -56,7 +56,7 @@ PARAM_RANGES = {
     "fold_seconds": _POSITIVE, "distance": _POSITIVE, "bend_load": _NONNEGATIVE,
     "samples": _POSITIVE, "trials": _POSITIVE, "descent_steps": _POSITIVE, "relinearize_every": _POSITIVE,
     "flight_attempts": _POSITIVE, "workers": _POSITIVE, "seeds": _NONNEGATIVE, "nulls": _NONNEGATIVE,
-    "unmodelled": _NONNEGATIVE, "raw_hidden": _POSITIVE, "drone_edge_length": _POSITIVE,
+    "unmodelled": _NONNEGATIVE, "variants": _NONNEGATIVE, "raw_hidden": _POSITIVE, "drone_edge_length": _POSITIVE,
     "test_seed_offset": _NONNEGATIVE, "scaling_edges": _POSITIVE, "n_values": _POSITIVE,
     "layers": _POSITIVE, "jobs": _POSITIVE, "refine": _POSITIVE, "noise_levels": _NONNEGATIVE,
 }

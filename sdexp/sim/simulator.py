@@ -121,13 +121,13 @@ class Simulator:
         flight's draws (a gust sequence is a function of time) and only ``reset``."""
         from sdexp.sensing.rotations import quat_from_matrix
         self._new_body()
-        for e in self.effects:
-            e.reset(self)
         self.body.x[:] = x
         self.body.v[:] = v
         if rotation is not None and self.drone.dim == 3:
             self.body.set_rotation(quat_from_matrix(np.asarray(rotation)))
         self.t = float(t)
+        for e in self.effects:   # after the state is set: an effect may start from it
+            e.reset(self)
         for u in history:
             self.applied = self._actuate(u, noisy=False)
 

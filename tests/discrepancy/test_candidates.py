@@ -53,9 +53,9 @@ def test_a_flagged_fit_does_not_pass_however_much_it_helps():
 
 
 def test_user_effects_are_candidates_by_target_and_errors_name_the_fix(leaf):
-    tilt = candidate({"_target_": "sdexp.discrepancy.bench.RotorTilt", "rotor": 1}, leaf)
+    tilt = candidate({"_target_": "sdexp.discrepancy.bench_effects.RotorTilt", "rotor": 1}, leaf)
     assert tilt.name == "rotor_tilt" and tilt.params == ["angle"]
-    assert tilt.build(np.array([0.1]), None) == [{"_target_": "sdexp.discrepancy.bench.RotorTilt",
+    assert tilt.build(np.array([0.1]), None) == [{"_target_": "sdexp.discrepancy.bench_effects.RotorTilt",
                                                   "rotor": 1, "angle": 0.1}]
     assert tilt.base(None)[0]["angle"] == 0.0          # the reference is the effect at theta = 0
     with pytest.raises(UserError, match="fit_params"):
@@ -74,7 +74,7 @@ def test_windows_replay_several_time_constants_of_the_slowest_lag(leaf):
 
 def test_a_users_own_hypothesis_is_named_from_the_logs(tmp_path, small_cfg, leaf):
     cfg = small_cfg.copy()
-    user = {"_target_": "sdexp.discrepancy.bench.RotorTilt", "rotor": 0}
+    user = {"_target_": "sdexp.discrepancy.bench_effects.RotorTilt", "rotor": 0}
     cfg.discrepancy.candidates = ["motor_lag", "payload", user]
     record(cfg, leaf, tmp_path / "logs", [{**user, "angle": 0.2}], seed=21)
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
