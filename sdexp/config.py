@@ -190,6 +190,7 @@ class DiscrepancyConfig:
     max_effects: int = 2               # effects added one after another while the residual remains
     floor_flights: int = 8             # nominal simulated flights that calibrate the noise floor
     unexplained_ratio: float = 1.5     # residual / noise floor above which a cell is unexplained
+    push: bool = True                  # the per-window push diagnostic (push.csv/png): 8 rollouts more
     record: RecordConfig = field(default_factory=RecordConfig)
 
 

@@ -157,16 +157,19 @@ def angle_columns_cached(drone) -> np.ndarray:
     return _ANG[key]
 
 
-def predict_windows(sim, bend: BendMap, flight, starts, start_rows, horizon: int, history: int) -> np.ndarray:
+def predict_windows(sim, bend: BendMap, flight, starts, start_rows, horizon: int, history: int,
+                    before=None) -> np.ndarray:
     """(W, horizon, C) predicted channels for windows starting at rows ``starts``: re-initialise
     at the measured state ``start_rows`` (W, C), replay the ``history`` commands before it
     through the actuation chain, then step with the logged commands. A window whose simulation
-    fails keeps its last state."""
+    fails keeps its last state. ``before(w)`` runs before window w (a per-window parameter)."""
     C = flight.y.shape[1]
     layout = sim.drone.layout
     bend = bend.stiffer(float(np.mean(sim.fem.mu / sim.drone.fem.mu)))
     out = np.empty((len(starts), horizon, C))
     for w, i0 in enumerate(starts):
+        if before is not None:
+            before(w)
         x, v, R = reinit_state(sim, start_rows[w], bend)
         sim.set_state(x, v, R, t=flight.t[i0], history=flight.u[max(0, i0 - history):i0])
         for k in range(horizon):

@@ -123,8 +123,9 @@ class Predictor:
         self.ang = angle_columns(channel_names(drone.dim, drone.layout.n_s))
         self.rollouts = 0
 
-    def residual(self, w: Windows, effects) -> np.ndarray:
-        """measured - predicted (W, horizon, C) with ``effects`` (entries) in the simulator."""
+    def residual(self, w: Windows, effects, before=None) -> np.ndarray:
+        """measured - predicted (W, horizon, C) with ``effects`` (entries or Effect objects) in
+        the simulator; ``before(k)`` runs before window k of ``w`` (per-window parameters)."""
         from sdexp.sim.simulator import Simulator
         sim = Simulator(self.drone, self.sim_cfg, self.noise, seed=0, effects=self.base + list(effects))
         out = np.empty_like(w.measured)
@@ -132,7 +133,8 @@ class Predictor:
         for f, s in zip(w.flights, w.starts):
             if len(s) == 0:
                 continue
-            pred = predict_windows(sim, self.bend, f, s, w.start_rows[k:k + len(s)], w.horizon, w.history)
+            hook = None if before is None else (lambda j, k=k: before(k + j))
+            pred = predict_windows(sim, self.bend, f, s, w.start_rows[k:k + len(s)], w.horizon, w.history, hook)
             out[k:k + len(s)] = residuals(pred, f, s, w.horizon, self.ang)
             k += len(s)
         self.rollouts += 1

@@ -9,7 +9,8 @@ between the simulator and measured logs, name the missing effect, add it, show t
    the floor. Up to ``max_effects`` effects are added one after another.
 3. Add: sim_fitted.yaml, the simulator config with the fitted effects (a drop-in for
    conf/sim/<name>.yaml).
-4. Show: held-out per-channel error before and after (gap.csv) and overlays (overlay.png).
+4. Show: held-out per-channel error before and after (gap.csv) and overlays (overlay.png); where
+   a push still acts, per window (push.csv, push.png: sdexp.discrepancy.push).
 report.json holds the verdict, parameters with uncertainty, the ranking and the gap.
 """
 from __future__ import annotations
@@ -26,6 +27,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sdexp.cache import atomic_write, cached_arrays, key_of
+from sdexp.discrepancy import push
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
 from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
 from sdexp.discrepancy.localize import heatmap, localize, noise_floor, unexplained_cell
@@ -214,6 +216,18 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     if not accepted:
         verdict = "unexplained" if hot is not None else "none"
 
+    # where a push still acts, window by window, with the named effects in (a diagnostic)
+    push_summary = None
+    if dcfg.push:
+        r_left = pred.residual(w_all, base)
+        pushes = push.estimate(pred, w_all, sigma, base, r_left)
+        atomic_write(out_dir / "push.csv", lambda tmp: pushes.to_csv(tmp, index=False))
+        push_summary = push.summary(pushes, trimmed(floor_w), drone.dim)
+        if plots:
+            push.plot(pushes, out_dir / "push.png", drone.dim,
+                      f"{drone.name}: the push per window that the simulator"
+                      f"{' with ' + ', '.join(f.name for f in accepted) if accepted else ''} misses")
+
     # 3. add
     fitted_effects = [e for f in accepted for e in f.effects]
     sim_fitted = dict(_plain(sim_cfg))
@@ -241,6 +255,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "ties": ties,
         "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
         "remaining_above_floor": _jsonable(remaining_cell),
+        "push": _jsonable(push_summary),
         "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
                 "gap_before": gap_before, "gap_after": gap_after,
                 "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},

@@ -118,3 +118,20 @@ def test_a_scan_finds_what_the_linearisation_at_zero_misses():
     scanned = linear_fit(cand([np.array([v]) for v in (0.5, 1.1, 1.6)]), Predictor(), train, sigma, r0, [], rng)
     assert abs(plain.theta[0] - truth) > 1.0
     assert scanned.theta[0] == pytest.approx(truth, abs=0.1)
+
+
+def test_the_push_diagnostic_shows_a_wind_push_along_the_wind(tmp_path, small_cfg, leaf):
+    """With no candidate for it, a steady wind along +x shows as a push along +x in most windows
+    of the per-window diagnostic, and the per-window push removes much of the excess."""
+    import pandas as pd
+    cfg = small_cfg.copy()
+    cfg.discrepancy.candidates = ["motor_lag"]
+    cfg.discrepancy.push = True
+    record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [3.0, 0.0, 0.0]}], seed=13)
+    rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
+    table = pd.read_csv(tmp_path / "out" / "push.csv")
+    assert (tmp_path / "out" / "push.png").exists()
+    assert np.mean(table.a_x > 0) > 0.7
+    assert table.a_x.median() > 2 * table.a_z.abs().median()
+    assert rep["push"]["share_of_excess_removed"] > 0.3
+    assert rep["push"]["mean"]["a_x"] > 0
