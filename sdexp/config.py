@@ -189,7 +189,8 @@ class DiscrepancyConfig:
     screen: int = 3                    # candidates refined and tested on held-out flights
     max_effects: int = 2               # effects added one after another while the residual remains
     floor_flights: int = 8             # nominal simulated flights that calibrate the noise floor
-    unexplained_ratio: float = 1.5     # residual / noise floor above which a cell is unexplained
+    unexplained_ratio: float = 1.2     # a channel's residual / noise floor above which, if significant over
+                                       # held-out flights and replicated on training flights, it is unexplained
     push: bool = True                  # the per-window push diagnostic (push.csv/png): 8 rollouts more
     record: RecordConfig = field(default_factory=RecordConfig)
 

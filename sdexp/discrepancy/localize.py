@@ -99,22 +99,51 @@ def worst_cell(table: pd.DataFrame, ratio: float, alpha: float, halves=None):
     return t.sort_values("ratio", ascending=False).iloc[0].to_dict()
 
 
-def unexplained_cell(table: pd.DataFrame, train: pd.DataFrame, held: pd.DataFrame, ratio: float, alpha: float):
-    """Is a residual left that the floor does not explain, and where? A channel counts when its
-    residual over all windows exceeds ``ratio`` x floor significantly on the held-out flights
-    (Bonferroni over channels) and by half that excess on the training flights; the answer is
-    its worst significant regime cell (or the channel as a whole). None when no channel does:
-    single cells alone, hundreds of them, are too easily high by chance to name a gap."""
-    from scipy.stats import norm
-    z = norm.ppf(1.0 - alpha / max(table.channel.nunique(), 1))
-    h = held[(held.regime == "all") & (held.ratio > ratio) & (held.z > z)]
-    t = train[(train.regime == "all") & (train.ratio > 1.0 + 0.5 * (ratio - 1.0))]
-    channels = set(h.channel) & set(t.channel)
+def flight_losses(r: np.ndarray, flight_of: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """(F, C) mean normalised squared residual of each flight's windows, per channel."""
+    e = np.mean((r / sigma) ** 2, axis=1)
+    ids = np.unique(flight_of)
+    return np.stack([e[flight_of == f].mean(axis=0) for f in ids]) if len(ids) else np.zeros((0, e.shape[1]))
+
+
+def channel_excess(r, flight_of, r_floor, floor_flight_of, sigma, channels) -> pd.DataFrame:
+    """Per channel: the flights' loss over the floor flights' (ratio) and a t-statistic of the
+    difference of flight means, with the spread between flights taken from the floor's flights.
+    Flights, not windows, are the samples: windows of one flight share its manoeuvres and
+    disagree with the floor together, so a window-level test takes one flight set's difference
+    from another for a signal. Under "these flights are like the floor's" the statistic is
+    t-distributed with (floor flights - 1) degrees of freedom; the floor's spread, not the
+    measured flights', so that an effect that hits flights unequally is not hidden by it."""
+    a, f = flight_losses(r, flight_of, sigma), flight_losses(r_floor, floor_flight_of, sigma)
+    fm = np.maximum(f.mean(axis=0), 1e-12)
+    spread = f.std(axis=0, ddof=1) if len(f) > 1 else np.full(f.shape[1], np.inf)
+    se = spread * np.sqrt(1.0 / max(len(a), 1) + 1.0 / max(len(f), 1))
+    return pd.DataFrame({"channel": list(channels), "flights": len(a), "ratio": a.mean(axis=0) / fm,
+                         "t": (a.mean(axis=0) - f.mean(axis=0)) / np.maximum(se, 1e-12),
+                         "dof": max(len(f) - 1, 1)})
+
+
+def unexplained_channels(held: pd.DataFrame, train: pd.DataFrame, ratio: float, alpha: float) -> list[str]:
+    """Channels whose residual stays above the floor: on the held-out flights by more than
+    ``ratio`` x and significantly (one-sided t over flight means, Bonferroni over channels), and
+    replicated on the training flights (above the floor, one-sided alpha)."""
+    from scipy.stats import t as student
+    crit_h = student.ppf(1.0 - alpha / max(len(held), 1), held.dof.clip(lower=1))
+    crit_t = student.ppf(1.0 - alpha, train.dof.clip(lower=1))
+    h = held[(held.ratio > ratio) & (held.t > crit_h)]
+    t = train[(train.ratio > 1.0) & (train.t > crit_t)]
+    return [c for c in h.channel if c in set(t.channel)]
+
+
+def unexplained_cell(table: pd.DataFrame, channels: list[str], ratio: float, alpha: float):
+    """Where the unexplained channels disagree most: the worst significant regime cell of
+    ``table`` among them, else the worst channel as a whole; None when no channel is left."""
     if not channels:
         return None
     cell = worst_cell(table[table.channel.isin(channels)], ratio, alpha)
     if cell is None:
         cell = table[(table.regime == "all") & table.channel.isin(channels)].sort_values("ratio").iloc[-1].to_dict()
+    cell["channels"] = list(channels)
     return cell
 
 

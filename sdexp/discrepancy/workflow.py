@@ -30,7 +30,8 @@ from sdexp.cache import atomic_write, cached_arrays, key_of
 from sdexp.discrepancy import push
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
 from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
-from sdexp.discrepancy.localize import heatmap, localize, noise_floor, unexplained_cell
+from sdexp.discrepancy.localize import (channel_excess, heatmap, localize, noise_floor, unexplained_cell,
+                                        unexplained_channels)
 from sdexp.discrepancy.logs import read_logs
 from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
@@ -40,7 +41,7 @@ from sdexp.config import drone_key
 log = logging.getLogger(__name__)
 
 
-FLOOR_FORMAT = 2
+FLOOR_FORMAT = 3   # 3: the floor windows' flights are kept (flight-level tests)
 
 
 def _plain(x):
@@ -83,12 +84,12 @@ def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: s
             logs = read_logs(tmp, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
         w = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
         r = Predictor(drone, sim_cfg, noise_cfg, bend).residual(w, [])
-        return {"r": r, "start_rows": w.start_rows, "start_u": w.start_u}
+        return {"r": r, "start_rows": w.start_rows, "start_u": w.start_u, "flight_of": w.flight_of}
 
     a = cached_arrays(cache_dir, key_of("discrepancy-floor", FLOOR_FORMAT, payload), make)
     channels = channel_names(drone.dim, drone.layout.n_s)
     w = Windows([], [], h, hist, channels, np.zeros((len(a["r"]), h, len(channels))), a["start_rows"],
-                a["start_u"], np.zeros(len(a["r"]), int))
+                a["start_u"], a["flight_of"])
     return a["r"], w
 
 
@@ -150,8 +151,13 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     def table_on(r, w):
         return localize(r, w, r_floor, w_floor, sigma, drone.dim, drone.layout.n_s)
 
-    hot = unexplained_cell(table, table_on(r_train_all, train_all), table_on(r_held, held),
-                           dcfg.unexplained_ratio, dcfg.alpha)
+    def left_over(r_tr, w_tr, r_he, w_he):
+        """Channels above the floor on held-out flights, replicated on training flights."""
+        ex = lambda r, w: channel_excess(r, w.flight_of, r_floor, w_floor.flight_of, sigma, w.channels)  # noqa: E731
+        return unexplained_channels(ex(r_he, w_he), ex(r_tr, w_tr), dcfg.unexplained_ratio, dcfg.alpha)
+
+    hot = unexplained_cell(table, left_over(r_train_all, train_all, r_held, held), dcfg.unexplained_ratio,
+                           dcfg.alpha)
 
     # 2. name, one effect at a time
     base, accepted, rounds = [], [], []
@@ -201,8 +207,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         cur_held = best.evidence["held_residual"]
         cur_held_w = best.held_w
         cur_train = pred.residual(train, base)
-        # stop when what is left is at the noise floor
-        if trimmed(cur_held_w) < dcfg.unexplained_ratio * trimmed(floor_w):
+        # stop when no channel is left above the floor (held out, replicated on training flights)
+        if not left_over(cur_train, train, cur_held, held):
             break
     # the gap: excess of the held-out loss over the noise floor's, as trimmed means (the top
     # 10% of windows dropped): a few windows of the floor flights with large errors would
@@ -210,9 +216,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     L_before, L_after, floor_L = trimmed(held_nom_w), trimmed(cur_held_w), trimmed(floor_w)
     remaining_cell = None
     if accepted:
-        t_held = table_on(cur_held, held)
-        remaining_cell = unexplained_cell(t_held, table_on(cur_train, train), t_held, dcfg.unexplained_ratio,
-                                          dcfg.alpha)
+        remaining_cell = unexplained_cell(table_on(cur_held, held), left_over(cur_train, train, cur_held, held),
+                                          dcfg.unexplained_ratio, dcfg.alpha)
     if not accepted:
         verdict = "unexplained" if hot is not None else "none"
 
@@ -256,6 +261,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
         "remaining_above_floor": _jsonable(remaining_cell),
         "push": _jsonable(push_summary),
+        # the share of the held-out gap over the floor that the named effects close
+        "explained_share": float(min(1.0, 1 - gap_after / gap_before)) if accepted and gap_before > 0 else None,
         "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
                 "gap_before": gap_before, "gap_after": gap_after,
                 "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},
