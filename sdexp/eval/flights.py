@@ -50,7 +50,7 @@ class Setup:
                 bar.update()
             if watch is not None:
                 watch(sim)
-        flight = fly(sim, controller, task, on_step=on_step, limits=getattr(self.cfg, "flight", None),
+        flight = fly(sim, controller, task, on_step=on_step, limits=self.cfg.flight,
                      recorder=recorder)
         if bar is not None:
             bar.close()
@@ -69,7 +69,7 @@ class Setup:
             return
         from sdexp.eval.animation import save_flight
         save_flight(out_dir, stem, recorder, self.drone, list(self.cfg.sim.obstacles), title, self.progress,
-                    paraview=bool(self.cfg.experiment.params.get("paraview", False)))
+                    paraview=bool(getattr(self.cfg.experiment.params, "paraview", False)))
 
 
 def ending(m: dict) -> str:
