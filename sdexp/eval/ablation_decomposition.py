@@ -49,7 +49,8 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
-from sdexp.model.training import DECOMPOSED, UNDECOMPOSED, design, train_models
+from sdexp.model.specs import DECOMPOSED, UNDECOMPOSED
+from sdexp.model.training import design, train_models
 from sdexp.run import Run
 
 log = logging.getLogger(__name__)

@@ -15,11 +15,11 @@ class Setup:
     """The drone, the learned model (cached data and networks) and simulators for cfg."""
 
     def __init__(self, cfg, progress: bool = True):
-        from sdexp.eval.model_test import prepare
+        from sdexp.model.identification import identify
         from sdexp.sim.drone import build_drone
 
         self.cfg = cfg
-        self.data, self.trained, self.dyn = prepare(cfg, progress)
+        self.data, self.trained, self.dyn = identify(cfg, progress)
         self.drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
         self.progress = progress
 

@@ -47,7 +47,9 @@ import pandas as pd
 import torch
 
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
-from sdexp.model.training import DECOMPOSED, design, design_rows, history_table, loss_plot, train_models
+from sdexp.model.specs import DECOMPOSED
+from sdexp.model.identification import identify
+from sdexp.model.training import design, design_rows, history_table, loss_plot
 from sdexp.run import Run
 
 log = logging.getLogger(__name__)
@@ -55,17 +57,6 @@ log = logging.getLogger(__name__)
 
 GROUPS = ("s", "e", "p")
 VEL = {"s": "s_dot", "e": "e_dot", "p": "p_dot"}
-
-
-def prepare(cfg, progress: bool = True):
-    """(dataset, trained d/g/h, LearnedDynamics) for cfg, from the caches where possible."""
-    from sdexp.model.dataset import load_dataset
-
-    data = load_dataset(cfg)
-    trained = train_models(data, cfg.model, int(cfg.seed), cfg.cache_dir, float(cfg.data.validation_fraction),
-                           DECOMPOSED, progress)
-    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon))
-    return data, trained, dyn
 
 
 def channel_names(sizes: dict) -> dict[str, list[str]]:
@@ -348,7 +339,7 @@ def run(run: Run) -> dict:
     dt = float(cfg.sim.control_dt)                  # between rows, commands and rollout steps
     horizon = int(cfg.model.horizon)
     alpha = dt * horizon                            # between a net's input and its target
-    data, trained, dyn = prepare(cfg)
+    data, trained, dyn = identify(cfg)
     run.table(history_table(trained), "training")
     loss_plot(trained, out_dir / "training.png", f"{cfg.drone.name}: d, g, h training")
     metrics: dict = {"nets_cached": trained.cached, "train_wall_seconds": float(trained.wall_seconds)}

@@ -1,9 +1,5 @@
-"""Training the d, g, h networks of Eq. 4 (supplement F), and the undecomposed ablation network.
-
-    d(s, s_dot, u)                      -> s_dot_next
-    g(s, s_dot, e, e_dot, u)            -> e_dot_next
-    h(s, s_dot, e, e_dot, p_dot, u)     -> p_dot_next
-    raw(raw, raw_dot, u)                -> raw_dot_next     (decomposition ablation only)
+"""Training the d, g, h networks of Eq. 4 (supplement F), and the undecomposed ablation network
+(what each reads and predicts: sdexp.model.specs).
 
 Each network is a :class:`~sdexp.model.networks.ResidualMLP` trained separately on the same
 transitions: Adam (``model.lr``), the learning rate multiplied by ``model.lr_decay`` every
@@ -55,27 +51,12 @@ from sdexp.cache import atomic_write, build_lock, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
 from sdexp.model.networks import ResidualMLP
+from sdexp.model.specs import DECOMPOSED, NetSpec
 
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 6   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key;
                      # 6: the model config's key fields (sdexp.cache.config_key)
-
-
-@dataclass(frozen=True)
-class NetSpec:
-    name: str
-    inputs: tuple[str, ...]   # dataset keys, concatenated in this order
-    target: str               # dataset key of the next-frame velocity
-    current: str              # dataset key of its current value (one of the inputs)
-
-
-DECOMPOSED = (
-    NetSpec("d", ("s", "s_dot", "u"), "s_dot_next", "s_dot"),
-    NetSpec("g", ("s", "s_dot", "e", "e_dot", "u"), "e_dot_next", "e_dot"),
-    NetSpec("h", ("s", "s_dot", "e", "e_dot", "p_dot", "u"), "p_dot_next", "p_dot"),
-)
-UNDECOMPOSED = (NetSpec("raw", ("raw", "raw_dot", "u"), "raw_dot_next", "raw_dot"),)
 
 
 @dataclass

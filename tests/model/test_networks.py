@@ -10,7 +10,8 @@ from sdexp.errors import UserError
 from sdexp.model import training
 from sdexp.model.dataset import Dataset
 from sdexp.model.networks import ResidualMLP
-from sdexp.model.training import DECOMPOSED, UNDECOMPOSED, design, train_models
+from sdexp.model.specs import DECOMPOSED, UNDECOMPOSED
+from sdexp.model.training import design, train_models
 
 
 class SyntheticDataset(Dataset):
