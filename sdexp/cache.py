@@ -15,6 +15,7 @@ files and builds the entry itself.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -33,6 +34,22 @@ except ImportError:   # not a POSIX system: no locking (one job at a time)
 log = logging.getLogger(__name__)
 
 LOCK_DIR = ".locks"
+
+
+def config_key(node: Any) -> Any:
+    """A config dataclass as a cache key's payload: its fields, nested dataclasses alike, less
+    those marked ``metadata={"key": False}`` (how a result is computed, not what: threads,
+    worker processes). Which artefact a field determines is the caller's to say (it passes the
+    parts of the config that make the artefact); a change to what the fields mean or to the
+    artefact is a bump of the caller's format version, never a special case here."""
+    if dataclasses.is_dataclass(node) and not isinstance(node, type):
+        return {f.name: config_key(getattr(node, f.name)) for f in dataclasses.fields(node)
+                if f.metadata.get("key", True)}
+    if isinstance(node, (list, tuple)):
+        return [config_key(v) for v in node]
+    if isinstance(node, dict):
+        return {k: config_key(v) for k, v in node.items()}
+    return node
 
 
 def key_of(kind: str, version: int, payload: Any) -> str:

@@ -109,13 +109,13 @@ def describe(err: BaseException, args: list[str]) -> str:
 
 
 def _unknown_param(key: str, args: list[str]) -> str:
-    from sdexp.eval.experiments import param_defaults
+    from sdexp.config import unknown_param_error
+    from sdexp.experiment_params import PARAMS
     name = next((a.split("=", 1)[1] for a in args if a.startswith("experiment=")), None)
     if name is None:
         defaults = OmegaConf.to_container(conf.read("config").defaults)
         name = next((d["experiment"] for d in defaults if isinstance(d, dict) and "experiment" in d), "?")
-    allowed = ", ".join(sorted(param_defaults(name))) or "none"
-    return f"{key} is not a parameter of {name}: allowed {allowed}"
+    return str(unknown_param_error(key[len("experiment.params."):], PARAMS.get(name), name))
 
 
 def main() -> None:

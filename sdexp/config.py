@@ -23,6 +23,10 @@ from sdexp.errors import UserError, one_line
 
 ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.physics.fem)
 
+# A field that says how a result is computed (threads, worker processes), not what: it is left
+# out of the cache keys of the artefacts it helps make (sdexp.cache.config_key).
+NOT_KEY = {"key": False}
+
 
 @dataclass
 class MeshConfig:
@@ -73,7 +77,7 @@ class SimConfig:
     friction: float = 0.5                # Coulomb coefficient on ground and boxes
     max_speed: float = 100.0             # m/s; faster vertices count as a blow-up
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
-    threads: int = 0                     # FEM kernel threads; 0 = auto (2 for big meshes)
+    threads: int = field(default=0, metadata=NOT_KEY)   # FEM kernel threads; 0 = auto (2 for big meshes)
     element: str = "quadratic"           # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.physics.effects), each {name|_target_, params}
 
@@ -103,7 +107,7 @@ class DataConfig:
     deform_hold_seconds: float = 1.0  # such a pattern is redrawn this often
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
     region: float = 30.0            # m from the start beyond which an episode restarts
-    workers: int = 2                # simulation processes
+    workers: int = field(default=2, metadata=NOT_KEY)   # simulation processes
     validation_fraction: float = 0.1  # held-out episodes
 
 
@@ -121,7 +125,7 @@ class ModelConfig:
     keep_best: bool = True          # return the epoch of lowest validation loss (false: the last, as the paper)
     linear: List[str] = field(default_factory=list)  # nets (d, g, h, raw) that are linear maps, no hidden layers
     horizon: int = 1                # predict the velocity this many frames ahead (paper: 1); alpha = horizon x dt
-    threads: int = 2                # torch threads: >= 2 trains d, g, h side by side, one thread each
+    threads: int = field(default=2, metadata=NOT_KEY)   # torch threads: >= 2 trains d, g, h side by side, one thread each
 
 
 @dataclass
@@ -212,8 +216,9 @@ class FlightConfig:
 
 @dataclass
 class ExperimentConfig:
+    _target_: str = MISSING   # the runner, run(run: sdexp.eval.run.Run) -> metrics
     name: str = MISSING
-    params: Dict[str, Any] = field(default_factory=dict)
+    params: Any = None        # the experiment's own dataclass (sdexp.experiment_params), placed by its YAML
 
 
 @dataclass
@@ -244,13 +249,6 @@ def register() -> None:
     # second get different folders (sdexp.eval.experiments.claim guards any folder reused)
     if not OmegaConf.has_resolver("sdexp.pid"):
         OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
-
-
-def drone_key(drone: dict) -> dict:
-    """A drone's config (plain dict) as the data and model caches key it: a mesh option left at
-    its default is dropped, so a drone meshed as before keeps what was cached before the option."""
-    mesh = {k: v for k, v in drone.get("mesh", {}).items() if not (k in ("mirror", "layers") and not v)}
-    return {**drone, "mesh": mesh}
 
 
 def _nonfinite(value: Any) -> bool:
@@ -325,11 +323,29 @@ def unknown_key_error(key: str) -> UserError | None:
     return _schema_error(key, [f.name for f in dataclasses.fields(cls)], ".".join(parts[:-1]) or "the config")
 
 
+def unknown_param_error(key: str, params_cls, experiment: str) -> UserError:
+    """The error for ``experiment.params.<key>``, which the experiment's params (``params_cls``,
+    sdexp.experiment_params) lack: the closest one and all of them."""
+    names = sorted(f.name for f in dataclasses.fields(params_cls)) if params_cls is not None else []
+    close = difflib.get_close_matches(key, names, n=1)
+    hint = f" (did you mean experiment.params.{close[0]}?)" if close else ""
+    return UserError(f"experiment.params.{key} is not a parameter of {experiment}{hint}: "
+                     f"allowed {', '.join(names) or 'none'}")
+
+
 def check_keys(cfg: DictConfig) -> None:
     """Every key must be in the schema: Hydra's ``+key=value`` appends past a struct config (the
     form Hydra itself suggests after a misspelled override), so a typo given that way is caught
-    here, with the closest valid key."""
+    here, with the closest valid key. experiment.params is checked against the schema its
+    experiment placed there."""
     _walk_schema(cfg, Config, "")
+    params = cfg.experiment._get_node("params")
+    cls = OmegaConf.get_type(params) if isinstance(params, DictConfig) else None
+    if dataclasses.is_dataclass(cls):
+        for key in params.keys():
+            if key not in {f.name for f in dataclasses.fields(cls)}:
+                raise unknown_param_error(str(key), cls, cfg.experiment.name)
+        _walk_schema(params, cls, "experiment.params.")
 
 
 def check_complete(cfg: DictConfig) -> None:
@@ -496,6 +512,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
     check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
     from sdexp.sim.physics.effects import check_config_effects, resolve_effect
-    check_config_effects(s.effects)   # names, parameters and ranges, before the run starts
-    for e in q.candidates:           # names and importable classes, before the logs are read
-        resolve_effect(OmegaConf.to_container(e) if isinstance(e, DictConfig) else e, "discrepancy.candidates")
+    plain = lambda x: OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x  # noqa: E731
+    check_config_effects(plain(s.effects))   # names, parameters and ranges, before the run starts
+    for e in q.candidates:                   # names and importable classes, before the logs are read
+        resolve_effect(plain(e), "discrepancy.candidates")

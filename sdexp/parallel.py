@@ -158,32 +158,35 @@ def job_cores(requested: int | None = None) -> tuple[int, int]:
 
 
 def fit_to_cores(cfg, cores: int):
-    """A copy of ``cfg`` whose thread and worker counts fit in ``cores``: sim.threads (0 = auto,
-    which may take 2), data.workers, model.threads and an experiment's ``workers``. The data,
-    the nets and the caches' keys do not depend on these counts."""
-    import copy
+    """A copy of ``cfg`` (the typed config, sdexp.config.Config) whose thread and worker counts
+    fit in ``cores``: sim.threads (0 = auto, which may take 2), data.workers, model.threads and
+    an experiment's ``workers``. The data, the nets and the caches' keys do not depend on these
+    counts (sdexp.config.NOT_KEY)."""
+    from dataclasses import replace
 
-    out = copy.deepcopy(cfg)
     changed = []
 
     def cap(node, key, value, label):
-        old = node[key]
-        if old != value:
-            node[key] = value
-            changed.append(f"{label} {old} -> {value}")
+        old = getattr(node, key)
+        if old == value:
+            return node
+        changed.append(f"{label} {old} -> {value}")
+        return replace(node, **{key: value})
 
-    if int(out.sim.threads) == 0:
+    sim, data, model, params = cfg.sim, cfg.data, cfg.model, cfg.experiment.params
+    if int(sim.threads) == 0:
         if cores < 2:
-            cap(out.sim, "threads", 1, "sim.threads")
-    elif int(out.sim.threads) > cores:
-        cap(out.sim, "threads", cores, "sim.threads")
-    for node, key, label in ((out.data, "workers", "data.workers"), (out.model, "threads", "model.threads")):
-        if int(node[key]) > cores:
-            cap(node, key, cores, label)
-    params = out.experiment.params
-    if "workers" in params and isinstance(params.workers, int) and params.workers > cores:
-        cap(params, "workers", cores, "experiment.params.workers")
-    return out, changed
+            sim = cap(sim, "threads", 1, "sim.threads")
+    elif int(sim.threads) > cores:
+        sim = cap(sim, "threads", cores, "sim.threads")
+    if int(data.workers) > cores:
+        data = cap(data, "workers", cores, "data.workers")
+    if int(model.threads) > cores:
+        model = cap(model, "threads", cores, "model.threads")
+    if isinstance(getattr(params, "workers", None), int) and params.workers > cores:
+        params = cap(params, "workers", cores, "experiment.params.workers")
+    experiment = replace(cfg.experiment, params=params)
+    return replace(cfg, sim=sim, data=data, model=model, experiment=experiment), changed
 
 
 @contextlib.contextmanager

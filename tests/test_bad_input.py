@@ -9,10 +9,14 @@ import sys
 
 import pytest
 from hydra import compose, initialize_config_module
+from hydra.errors import ConfigCompositionException
 
+from sdexp import conf
+from sdexp.cli import describe
 from sdexp.config import validate
 from sdexp.errors import EXIT_USER_ERROR, UserError
-from sdexp.eval.experiments import RUNNERS, check_params, param_defaults
+from sdexp.eval.experiments import check_groups, typed
+from sdexp.experiment_params import PARAMS, names
 
 
 def make_cfg(*overrides):
@@ -21,10 +25,15 @@ def make_cfg(*overrides):
 
 
 def rejected(*overrides) -> str:
-    cfg = make_cfg(*overrides)
+    """The one-line message of a config sdexp refuses: a composition error (a type the schema
+    refuses) as the cli words it, else sdexp's checks (validate, the params' ranges and options)."""
+    try:
+        cfg = make_cfg(*overrides)
+    except ConfigCompositionException as err:
+        return describe(err, list(overrides))
     with pytest.raises(UserError) as info:
         validate(cfg)
-        check_params(cfg)
+        check_groups(typed(cfg).experiment.params)
     return str(info.value)
 
 
@@ -90,29 +99,30 @@ def rejected(*overrides) -> str:
     ("+experiment.params.drones=[rod]", "experiment.params.drones", "allowed animate, controllers, paraview, seconds, start, target"),
     ("experiment=record +experiment.params.flights=3", "experiment.params.flights", "allowed none"),
     ("experiment.params.seconds=-1", "experiment.params.seconds", "> 0"),
-    ("experiment.params.seconds=abc", "experiment.params.seconds", "a number"),
-    ("~experiment.params.seconds", "experiment.params.seconds", "is missing"),
-    ("experiment=bench_control experiment.params.samples=2.5", "experiment.params.samples", "an integer"),
+    ("experiment.params.seconds=abc", "experiment.params.seconds", "Float"),
+    ("~experiment.params.seconds", "experiment.params.seconds", "does not support deletion"),
+    ("experiment=bench_control experiment.params.samples=2.5", "experiment.params.samples", "Integer"),
     ("experiment=nsweep experiment.params.n_values=[0,1]", "experiment.params.n_values", "> 0 each"),
     ("experiment=bench_sim experiment.params.drones=[rod,nope]", "experiment.params.drones", "rod, star"),
     ("experiment=bench_sim experiment.params.scaling_drone=rodd", "experiment.params.scaling_drone", "flower"),
     ("experiment=validate_fem +experiment.params.beam.lenght=2", "experiment.params.beam.lenght", "length"),
     ("experiment=hover_deform experiment.params.ramp_seconds=inf", "experiment.params.ramp_seconds", "finite"),
     ("experiment.params.animate=[ours,nope]", "experiment.params.animate", "ours, rigid_lqr, geometry_lqr, neural"),
-    ("experiment.params.animate=true", "experiment.params.animate", "a list"),
-    ("experiment=obstacle experiment.params.animate=[ours]", "experiment.params.animate", "a boolean"),
+    ("experiment.params.animate=true", "experiment.params.animate", "not a ListConfig, list or tuple"),
+    ("experiment=obstacle experiment.params.animate=[ours]", "experiment.params.animate", "not a valid bool"),
 ])
 def test_bad_config_values_name_the_key_and_the_allowed_values(override, key, allowed):
     message = rejected(*override.split())
     assert key in message and allowed in message, message
 
 
-@pytest.mark.parametrize("experiment", sorted(RUNNERS))
+@pytest.mark.parametrize("experiment", conf.names("experiment"))
 def test_every_experiment_declares_its_params(experiment):
     cfg = make_cfg(f"experiment={experiment}")
     validate(cfg)
-    check_params(cfg)   # its own YAML passes its own check
-    assert set(cfg.experiment.params) == set(param_defaults(experiment))
+    check_groups(typed(cfg).experiment.params)   # its own defaults pass its own checks
+    assert list(cfg.experiment.params) == [f.name for f in __import__("dataclasses").fields(PARAMS[experiment])]
+    assert sorted(cfg.experiment.params) == names(PARAMS[experiment])
 
 
 # ------------------------------------------------------------------ the command line

@@ -13,16 +13,25 @@ from omegaconf.errors import ConfigKeyError
 
 from sdexp.config import validate
 from sdexp.errors import UserError
-from sdexp.eval.experiments import RUNNERS, run_experiment
+from sdexp import conf
+from sdexp.eval.experiments import run_experiment, typed
 from sdexp.sim.drone import drone_names
+
+EXPERIMENTS = conf.names("experiment")
 
 DRONES = ["bunny", "diamond", "donut", "elephant", "engine", "flower", "leaf", "octopus",
           "orange_peel", "rainbow", "rod", "star"]
 
 
 def make_cfg(*overrides):
+    """The composed config, as the cli hands it to run_experiment."""
     with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
+
+
+def make_config(*overrides):
+    """The typed config (sdexp.config.Config), as a runner and everything below it sees it."""
+    return typed(make_cfg(*overrides))
 
 
 def test_the_twelve_paper_drones_are_configured():
@@ -49,11 +58,13 @@ def test_every_drone_config_is_valid_against_the_table(drone):
     assert (cfg.drone.num_sensors, cfg.drone.num_rotors) == (sensors, rotors)
 
 
-@pytest.mark.parametrize("experiment", sorted(RUNNERS))
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_composes(experiment):
     cfg = make_cfg(f"experiment={experiment}")
     assert cfg.experiment.name == experiment
     validate(cfg)
+    config = typed(cfg)   # its params: its dataclass, the defaults in range
+    assert type(config.experiment.params).__name__.lower() == experiment.replace("_", "") + "params"
 
 
 def test_misspelled_key_is_an_error():
@@ -87,7 +98,7 @@ def test_cli_help_and_cfg_work_from_any_directory(tmp_path):
     res = _cli("--help", cwd=tmp_path)
     assert res.returncode == 0 and "drone: " in res.stdout and "experiment: " in res.stdout
     listed = res.stdout.split("Config groups")[0]   # the one-line-each part, above Hydra's group list
-    missing = [n for n in [*RUNNERS, *drone_names()] if f" {n} " not in listed.replace("\n", " \n")]
+    missing = [n for n in [*EXPERIMENTS, *drone_names()] if f" {n} " not in listed.replace("\n", " \n")]
     assert not missing, f"sdexp --help does not describe {missing}: conf/hydra/help/sdexp.yaml"
     res = _cli("drone=rod", "--cfg", "job", cwd=tmp_path)
     assert res.returncode == 0 and "youngs_modulus: 6000" in res.stdout

@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
+from sdexp.eval.experiments import typed
 from sdexp.parallel import available_cores, concurrent_jobs, fit_to_cores, job_cores
 
 TINY = ["experiment=gallery", "experiment.params.drones=[rod]"]   # a mesh and a plot: seconds
@@ -22,14 +23,14 @@ def make_cfg(*overrides, hydra=False):
 
 
 def test_fit_to_cores_caps_threads_and_workers_without_touching_the_config():
-    cfg = make_cfg("experiment=discrepancy_bench", "sim.threads=0", "data.workers=2", "model.threads=2")
+    cfg = typed(make_cfg("experiment=discrepancy_bench", "sim.threads=0", "data.workers=2", "model.threads=2"))
     one, changed = fit_to_cores(cfg, 1)
     assert (one.sim.threads, one.data.workers, one.model.threads, one.experiment.params.workers) == (1, 1, 1, 1)
     assert "data.workers 2 -> 1" in changed and "sim.threads 0 -> 1" in changed
     assert (cfg.sim.threads, cfg.data.workers, cfg.model.threads) == (0, 2, 2)   # a copy: the saved config stays
     two, changed = fit_to_cores(cfg, 2)
     assert (two.sim.threads, two.data.workers, two.model.threads) == (0, 2, 2) and changed == []
-    big, _ = fit_to_cores(make_cfg("sim.threads=8"), 4)
+    big, _ = fit_to_cores(typed(make_cfg("sim.threads=8")), 4)
     assert big.sim.threads == 4
 
 

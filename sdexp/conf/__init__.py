@@ -2,17 +2,20 @@
 install and any working directory find them: Hydra reads them from ``SEARCH_PATH`` and the code
 through :func:`names` and :func:`read`, never by a path relative to the source tree.
 
-Importing it registers the schema (``base_config`` in config.yaml's defaults list) and the
-resolvers the files use, so whatever composes them (the cli, a test's compose) has them."""
+Importing it registers the schema (``base_config`` in config.yaml's defaults list, each
+experiment's params in ``experiment_params``) and the resolvers the files use, so whatever
+composes them (the cli, a test's compose) has them."""
 from __future__ import annotations
 
 from importlib.resources import files
 
 from omegaconf import DictConfig, OmegaConf
 
+from sdexp import experiment_params
 from sdexp.config import register
 
 register()
+experiment_params.register()
 
 SEARCH_PATH = "pkg://sdexp.conf"
 MODULE = "sdexp.conf"
@@ -28,6 +31,12 @@ def _file(*parts: str):
 def names(group: str) -> list[str]:
     """The options of a config group (its .yaml files), sorted."""
     return sorted(f.name[:-len(".yaml")] for f in _file(group).iterdir() if f.name.endswith(".yaml"))
+
+
+def drone(name: str):
+    """conf/drone/<name>.yaml as a DroneConfig (the experiments that run several drones)."""
+    from sdexp.config import DroneConfig
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DroneConfig), read("drone", name)))
 
 
 def read(*parts: str) -> DictConfig | None:

@@ -21,16 +21,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from sdexp.cache import atomic_write, build_lock, key_of
+from sdexp.cache import atomic_write, build_lock, config_key, key_of
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.sensing import State
 
 log = logging.getLogger(__name__)
 
-POLICY_VERSION = 1
-POLICY_KEYS = ("hidden", "layers", "iterations", "batch", "horizon", "lr", "goal_radius",
-               "w_att", "w_bend", "w_vel", "w_u")
+POLICY_VERSION = 2   # 2: the key from the config's key fields (sdexp.cache.config_key)
 
 
 class Policy(nn.Module):
@@ -64,8 +62,8 @@ def _float32_dynamics(dyn: LearnedDynamics) -> LearnedDynamics:
 
 
 def policy_key(nets_key: str, cfg, seed: int) -> str:
-    return key_of("policy", POLICY_VERSION, {"nets": nets_key, "seed": int(seed),
-                                              "cfg": {k: cfg[k] for k in POLICY_KEYS}})
+    """``cfg``: a sdexp.config.NeuralControllerConfig."""
+    return key_of("policy", POLICY_VERSION, {"nets": nets_key, "seed": int(seed), "cfg": config_key(cfg)})
 
 
 def train_policy(dyn: LearnedDynamics, data_x: np.ndarray, max_thrust: float, cfg, seed: int,
@@ -84,16 +82,16 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
     rng = np.random.default_rng(seed)
     d32 = _float32_dynamics(dyn)
     sl = dyn.slices
-    policy = Policy(dyn.n, dyn.m, int(cfg["hidden"]), int(cfg["layers"]), max_thrust,
+    policy = Policy(dyn.n, dyn.m, int(cfg.hidden), int(cfg.layers), max_thrust,
                     (sl["p"].start, sl["p"].stop), (sl["e"].start, sl["e"].stop))
     spread = data_x.std(axis=0)
-    spread[sl["p"]] = cfg["goal_radius"]
+    spread[sl["p"]] = cfg.goal_radius
     policy.scale.copy_(torch.as_tensor(np.maximum(spread, 1e-3), dtype=torch.float32))
-    opt = torch.optim.Adam(policy.parameters(), lr=float(cfg["lr"]))
-    B, H, rad = int(cfg["batch"]), int(cfg["horizon"]), float(cfg["goal_radius"])
+    opt = torch.optim.Adam(policy.parameters(), lr=float(cfg.lr))
+    B, H, rad = int(cfg.batch), int(cfg.horizon), float(cfg.goal_radius)
     dim = sl["p"].stop - sl["p"].start
     losses = []
-    it = range(int(cfg["iterations"]))
+    it = range(int(cfg.iterations))
     if progress:
         from tqdm import tqdm
         it = tqdm(it, desc="train neural controller", unit="it", leave=False, disable=None)
@@ -112,9 +110,9 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
             x = x + d32.dt * d32.f_torch(x, u)
             e = torch.remainder(x[:, sl["e"]] + np.pi, 2 * np.pi) - np.pi
             loss = loss + (((x[:, sl["p"]] - goal) ** 2).sum(1) / rad ** 2
-                           + cfg["w_att"] * (e ** 2).sum(1) + cfg["w_bend"] * (x[:, sl["s"]] ** 2).sum(1)
-                           + cfg["w_vel"] * (x[:, sl["p_dot"]] ** 2).sum(1)
-                           + cfg["w_u"] * ((u / max_thrust) ** 2).sum(1)).mean()
+                           + cfg.w_att * (e ** 2).sum(1) + cfg.w_bend * (x[:, sl["s"]] ** 2).sum(1)
+                           + cfg.w_vel * (x[:, sl["p_dot"]] ** 2).sum(1)
+                           + cfg.w_u * ((u / max_thrust) ** 2).sum(1)).mean()
         loss = loss / H
         opt.zero_grad()
         if torch.isfinite(loss):

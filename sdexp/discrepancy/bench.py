@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
+import yaml
 
 from sdexp.cache import atomic_write
 from sdexp.discrepancy import bench_effects
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
@@ -162,8 +163,7 @@ def oracle_gap(sc: dict, folder: Path, drone, drone_cfg, sim_cfg, noise_cfg, dcf
     bend, r_floor, _ = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
     sigma = noise_floor(r_floor)
     pred = Predictor(drone, sim_cfg, noise_cfg, bend)
-    fitted = list(OmegaConf.load(folder / "workflow" / "sim_fitted.yaml").effects or [])
-    fitted = [OmegaConf.to_container(e, resolve=True) for e in fitted]
+    fitted = list(yaml.safe_load((folder / "workflow" / "sim_fitted.yaml").read_text()).get("effects") or [])
     loss = lambda eff: trimmed(window_loss(pred.residual(held, eff), sigma))
     L_nom = loss([])
     L_fit = loss(fitted) if fitted else L_nom
@@ -287,22 +287,16 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
-    names = list(params.get("effects") or LIBRARY)
+    names = list(params.effects or LIBRARY)
     if drone.dim == 2 and "rotor_reaction_torque" in names:
         names.remove("rotor_reaction_torque")
     scs = scenarios(drone, names, int(params.seeds), int(params.nulls), bool(params.combos),
-                    int(params.unmodelled), seed, tuple(params.get("levels") or (0, 1)),
-                    int(params.get("variants") or 0))
+                    int(params.unmodelled), seed, tuple(params.levels or (0, 1)), int(params.variants))
     prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)   # cache it once for every worker
-    from sdexp.config import DiscrepancyConfig, DroneConfig, NoiseConfig, SimConfig
-    # detached structured copies: what the spawned workers need, and nothing of the root config
-    args = [OmegaConf.merge(OmegaConf.structured(T), OmegaConf.to_container(x, resolve=True)
-                            if OmegaConf.is_config(x) else x)
-            for T, x in ((DroneConfig, drone_cfg), (SimConfig, sim_cfg), (NoiseConfig, noise_cfg),
-                         (DiscrepancyConfig, dcfg))]
+    args = [drone_cfg, sim_cfg, noise_cfg, dcfg]   # what the spawned workers need, and nothing of the root config
     # each scenario's logs and workflow outputs (~1.5 MB each): outside a results folder
-    scen_dir = str(params.get("scenario_dir") or out_dir / "scenarios")
-    if params.get("rescore"):
+    scen_dir = str(params.scenario_dir or out_dir / "scenarios")
+    if params.rescore:
         # re-score the scenarios of an earlier run (its scenarios.csv and folders) with this code
         old = pd.read_csv(out_dir / "scenarios.csv", keep_default_na=False, na_values=[""]).to_dict("records")
         fn, tasks = rescore_row, [(r, *args, scen_dir, cache_dir) for r in old]
@@ -323,13 +317,13 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     return metrics
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(run: Run) -> dict:
     from tqdm import tqdm
 
-    p = cfg.experiment.params
+    cfg, p = run.cfg, run.params
     n = None
     bar = tqdm(total=n, desc="discrepancy_bench scenarios", disable=None)
-    metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, Path(out_dir), cfg.cache_dir,
+    metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, run.out_dir, cfg.cache_dir,
                         int(cfg.seed), int(p.workers), progress=bar.update)
     bar.close()
     log.info(json.dumps(metrics, indent=2))

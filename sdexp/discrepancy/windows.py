@@ -103,8 +103,7 @@ def prediction_model(noise_cfg) -> tuple:
     """(noise config, base effects) for predictions: no random noise, and the output delay,
     part of the nominal model, as an actuation_delay effect (the same whole-step FIFO when the
     delay is a multiple of the control step, with noise-free readings straight from step)."""
-    from sdexp.sim.simulator import _plain
-    n = _plain(noise_cfg)
+    n = noise_cfg
     base = [{"name": "actuation_delay", "delay": float(n.delay)}] if n.enabled and n.delay > 0 else []
     return replace(n, enabled=False), base
 
@@ -113,13 +112,11 @@ class Predictor:
     """Runs the simulator with given effects over a window set; counts its rollouts."""
 
     def __init__(self, drone, sim_cfg, noise_cfg, bend: BendMap):
-        from sdexp.sim.simulator import _plain
         self.drone, self.bend = drone, bend
-        plain = _plain(sim_cfg)
-        self.sim_cfg = replace(plain, effects=[])
+        self.sim_cfg = replace(sim_cfg, effects=[])
         self.noise, delay = prediction_model(noise_cfg)
         # the nominal model: the configured effects (a previous fit, say) and the output delay
-        self.base = delay + list(plain.effects or [])
+        self.base = delay + list(sim_cfg.effects or [])
         self.ang = angle_columns(channel_names(drone.dim, drone.layout.n_s))
         self.rollouts = 0
 

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
+import yaml
 
-from sdexp.cache import atomic_write, cached_arrays, key_of
+from sdexp.cache import atomic_write, cached_arrays, config_key, key_of
 from sdexp.discrepancy import push
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
 from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
@@ -36,17 +36,12 @@ from sdexp.discrepancy.logs import read_logs
 from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.errors import UserError
-from sdexp.config import drone_key
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
 
-FLOOR_FORMAT = 3   # 3: the floor windows' flights are kept (flight-level tests)
-
-
-def _plain(x):
-    return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else (
-        asdict(x) if hasattr(x, "__dataclass_fields__") else x)
+FLOOR_FORMAT = 4   # 3: the configs' key fields (sdexp.cache.config_key); 4: the floor windows' flights kept
 
 
 def steps_of(dcfg, dt: float, history: float) -> tuple[int, int, int]:
@@ -62,7 +57,7 @@ def history_of(drone, dcfg) -> float:
 
 
 def model_key(drone_cfg, sim_cfg, noise_cfg) -> dict:
-    return {"drone": drone_key(_plain(drone_cfg)), "sim": _plain(sim_cfg), "noise": _plain(noise_cfg)}
+    return {"drone": config_key(drone_cfg), "sim": config_key(sim_cfg), "noise": config_key(noise_cfg)}
 
 
 def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: str, seed: int = 777_000):
@@ -71,16 +66,16 @@ def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: s
     from sdexp.discrepancy.record import record_flights
     from sdexp.discrepancy.logs import channel_names
 
-    dt = float(_plain(sim_cfg)["control_dt"])
+    dt = float(sim_cfg.control_dt)
     h, stride, hist = steps_of(dcfg, dt, history_of(drone, dcfg))
-    rec = _plain(dcfg.record)
-    payload = {**model_key(drone_cfg, sim_cfg, noise_cfg), "record": rec, "h": h, "stride": stride,
+    rec = dcfg.record
+    payload = {**model_key(drone_cfg, sim_cfg, noise_cfg), "record": config_key(rec), "h": h, "stride": stride,
                "hist": hist, "average": int(dcfg.start_average), "flights": int(dcfg.floor_flights), "seed": seed}
 
     def make():
         with tempfile.TemporaryDirectory() as tmp:
-            record_flights(drone, sim_cfg, noise_cfg, Path(tmp), int(dcfg.floor_flights), rec["seconds"],
-                           rec["manoeuvres"], seed, rec["height"], rec["ground"], rec["amplitude"])
+            record_flights(drone, sim_cfg, noise_cfg, Path(tmp), int(dcfg.floor_flights), rec.seconds,
+                           rec.manoeuvres, seed, rec.height, rec.ground, rec.amplitude)
             logs = read_logs(tmp, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
         w = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
         r = Predictor(drone, sim_cfg, noise_cfg, bend).residual(w, [])
@@ -113,7 +108,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     out_dir = Path(out_dir)
     logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim,
                      max_thrust=drone.max_thrust)
-    dt = float(_plain(sim_cfg)["control_dt"])
+    dt = float(sim_cfg.control_dt)
     if abs(logs.dt - dt) > 1e-9:
         raise UserError(f"{logs.folder / 'meta.json'}: sample_rate = {logs.meta['sample_rate']} Hz but the "
                         f"simulator runs at 1/sim.control_dt = {1 / dt:g} Hz")
@@ -235,12 +230,13 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
 
     # 3. add
     fitted_effects = [e for f in accepted for e in f.effects]
-    sim_fitted = dict(_plain(sim_cfg))
+    sim_fitted = asdict(sim_cfg)
     sim_fitted["effects"] = _jsonable(fitted_effects)
     out_yaml = Path(dcfg.out) if dcfg.out else out_dir / "sim_fitted.yaml"
     atomic_write(out_yaml, lambda tmp: tmp.write_text(
         "# The simulator config with the effects the discrepancy workflow fitted; copy to\n"
-        "# conf/sim/<name>.yaml and run with sim=<name>.\n" + OmegaConf.to_yaml(OmegaConf.create(sim_fitted))))
+        "# conf/sim/<name>.yaml and run with sim=<name>.\n"
+        + yaml.safe_dump(sim_fitted, default_flow_style=False, sort_keys=False, allow_unicode=True)))
 
     # 4. show
     gap = gap_table(r_held, cur_held, sigma, r_floor, logs.channels)
@@ -327,9 +323,10 @@ def _jsonable(x):
     return x
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(run: Run) -> dict:
     from sdexp.sim.drone import build_drone
 
+    cfg, out_dir = run.cfg, run.out_dir
     q = cfg.discrepancy
     if not q.measured:
         raise UserError("discrepancy.measured is not set: give the folder of measured logs "

@@ -44,13 +44,14 @@ their parameters together (``experiment.params.raw_hidden`` widens it).
 from __future__ import annotations
 
 import logging
-from pathlib import Path
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
-from sdexp.model.training import DECOMPOSED, UNDECOMPOSED, design, train_models
+from sdexp.model.specs import DECOMPOSED, UNDECOMPOSED
+from sdexp.model.training import design, train_models
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
@@ -71,17 +72,17 @@ def combined_curve(trained, column: str) -> np.ndarray:
     return tot / width
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(run: Run) -> dict:
     from sdexp.figures import pyplot
     plt = pyplot()
 
     from sdexp.model.dataset import load_dataset
 
-    p = cfg.experiment.params
+    cfg, p = run.cfg, run.params
     seed, vf = int(cfg.seed), float(cfg.data.validation_fraction)
     data = load_dataset(cfg)
     dec = train_models(data, cfg.model, seed, cfg.cache_dir, vf, DECOMPOSED)
-    raw_model = OmegaConf.merge(cfg.model, {"hidden": int(p.get("raw_hidden") or cfg.model.hidden)})
+    raw_model = replace(cfg.model, hidden=int(p.raw_hidden or cfg.model.hidden))
     raw = train_models(data, raw_model, seed, cfg.cache_dir, vf, UNDECOMPOSED)
 
     _, val_idx = data.split(vf, seed)
@@ -100,7 +101,7 @@ def run(cfg, out_dir: Path) -> dict:
     for n, h in dec.history.items():
         table[f"{n}_val_rel_l1"] = h["val_rel_l1"].to_numpy()
     widths = {s.name: design(data, s, val_idx[:1])[1].shape[1] for s in (*DECOMPOSED, *UNDECOMPOSED)}
-    table.to_csv(out_dir / "ablation_decomposition.csv", index=False)
+    run.table(table, "ablation_decomposition")
 
     panels = [("all", "each formulation's own targets")]
     if shared is not None:
@@ -120,8 +121,7 @@ def run(cfg, out_dir: Path) -> dict:
         ax.legend(fontsize=8)
     fig.suptitle(f"{cfg.drone.name}: convergence with and without the state decomposition", fontsize=11)
     fig.tight_layout()
-    fig.savefig(out_dir / "ablation_decomposition.png", dpi=120)
-    plt.close(fig)
+    run.figure(fig, "ablation_decomposition")
 
     def final_best(col: str) -> tuple[float, float]:
         return float(table[col].iloc[-1]), float(table[col].min())

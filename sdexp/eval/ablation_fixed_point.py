@@ -21,13 +21,13 @@ import pandas as pd
 from sdexp.control.fixed_point import find_fixed_point, pollute
 from sdexp.eval.controllers import ours
 from sdexp.eval.flights import Setup, flight_table
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
-    out_dir = Path(out_dir)
+def run(run: Run) -> dict:
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
     setup = Setup(cfg)
     dyn, tmax = setup.dyn, setup.drone.max_thrust
     start = np.zeros(dyn.dim)
@@ -52,7 +52,7 @@ def run(cfg, out_dir: Path) -> dict:
             rows.append({"noise": float(level), "mode": mode, **m,
                          "nan_command": m["failure"] == "controller: non-finite command"})
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "ablation_fixed_point.csv", index=False)
+    run.table(table, "ablation_fixed_point")
     _plot(tables, float(target[0]), out_dir / "ablation_fixed_point.png", cfg.drone.name)
     out = {"fixed_point_residual": residual}
     for r in rows:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -20,6 +19,7 @@ from sdexp.control.lqr import LqrFailure, lqr_gain
 from sdexp.control.tasks import Task
 from sdexp.eval.controllers import build, ours
 from sdexp.eval.flights import Setup
+from sdexp.run import Run
 from sdexp.sensing import State
 
 log = logging.getLogger(__name__)
@@ -30,13 +30,13 @@ def _ms(samples: list[float]) -> dict:
     return {"median_ms": float(np.median(a)), "mean_ms": float(a.mean()), "p90_ms": float(np.percentile(a, 90))}
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(run: Run) -> dict:
     with threadpool_limits(1, user_api="blas"):
-        return _run(cfg, out_dir)
+        return _run(run)
 
 
-def _run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
+def _run(run: Run) -> dict:
+    cfg, p = run.cfg, run.params
     torch.set_num_threads(1)
     setup = Setup(cfg)
     dyn = setup.dyn
@@ -85,7 +85,7 @@ def _run(cfg, out_dir: Path) -> dict:
             {"quantity": "control step between relinearizations", **_ms(step)},
             {"quantity": "geometry-updating LQR redesign (per step)", **_ms(redesign)}]
     table = pd.DataFrame(rows)
-    table.to_csv(Path(out_dir) / "bench_control.csv", index=False)
+    run.table(table, "bench_control")
     log.info(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     return {"relinearization_ms": rows[0]["median_ms"], "jacobians_ms": rows[1]["median_ms"],
             "riccati_ms": rows[2]["median_ms"], "control_step_ms": rows[3]["median_ms"],

@@ -7,23 +7,17 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
-
 from sdexp.eval.convergence import converged_response, response_errors
+from sdexp import conf
+from sdexp.run import Run
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
 
 log = logging.getLogger(__name__)
-
-
-def load_drone_cfg(name: str):
-    from sdexp.config import DroneConfig
-    from sdexp import conf
-    return OmegaConf.merge(OmegaConf.structured(DroneConfig), conf.read("drone", name))
 
 
 def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25) -> dict:
@@ -69,45 +63,55 @@ def stepping(drone, drone_cfg, sim) -> dict:
             "substeps_per_step": sim.n_sub}
 
 
-def run(cfg, out_dir: Path) -> dict:
+def with_edge(drone_cfg, edge_length: float):
+    """The drone config meshed at another edge length."""
+    return replace(drone_cfg, mesh=replace(drone_cfg.mesh, edge_length=float(edge_length)))
+
+
+def drone_config(cfg, name: str):
+    """The run's drone (with its overrides) if it is ``name``, else conf/drone/<name>.yaml."""
+    return cfg.drone if name == cfg.drone.name else conf.drone(name)
+
+
+def run(run: Run) -> dict:
     from sdexp.eval.plots import bench_plot
     from tqdm import tqdm
 
-    p = cfg.experiment.params
-    names = list(p.get("drones") or drone_names())
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
+    names = list(p.drones or drone_names())
     elements = list(p.elements)
     gravity, load = float(cfg.sim.gravity), float(p.bend_load)
     refine = list(p.refine)
     rows = []
     for name in tqdm(names, desc="bench_sim drones", disable=None):
-        d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
+        d = drone_config(cfg, name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for element in elements:
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
                          **response_errors(drone, ref, gravity, load)})
     for name in tqdm(names if p.resolution_factors else [], desc="bench_sim resolutions", disable=None):
-        d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
+        d = drone_config(cfg, name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for factor in p.resolution_factors:
-            coarse = OmegaConf.merge(d, {"mesh": {"edge_length": float(d.mesh.edge_length) * factor}})
+            coarse = with_edge(d, float(d.mesh.edge_length) * factor)
             drone = build_drone(coarse, cfg.cache_dir, "quadratic")
             sim = Simulator(drone, cfg.sim, cfg.noise, 0)
             rows.append({"series": "resolution", **stepping(drone, coarse, sim), "factor": factor,
                          **response_errors(drone, ref, gravity, load)})
-    scaling = p.get("scaling_drone")
+    scaling = p.scaling_drone
     if scaling:
-        base = cfg.drone if scaling == cfg.drone.name else load_drone_cfg(scaling)
+        base = drone_config(cfg, scaling)
         ref = converged_response(base, cfg.cache_dir, refine, gravity, load)
         for element in elements:
             for edge in tqdm(list(p.scaling_edges[element]), desc=f"bench_sim {scaling} {element}",
                              disable=None):
-                d = OmegaConf.merge(base, {"mesh": {"edge_length": float(edge)}})
+                d = with_edge(base, edge)
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
                              **response_errors(drone, ref, gravity, load)})
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "bench_sim.csv", index=False)
+    run.table(table, "bench_sim")
     bench_plot(table, out_dir / "bench_sim.png")
     show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
             "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from sdexp.run import Run
+
 log = logging.getLogger(__name__)
 
 
@@ -29,9 +31,8 @@ def sweep_command(experiment: str, seeds: int, jobs: int, cache_dir: str, sweep_
             "hydra.sweep.subdir=seed${seed}", *overrides]
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
-    out_dir = Path(out_dir)
+def run(run: Run) -> dict:
+    p, out_dir = run.params, run.out_dir
     rows = []
     for jobs in p.jobs:
         with tempfile.TemporaryDirectory(prefix="sdexp-bench-sweep-") as cache:
@@ -50,7 +51,7 @@ def run(cfg, out_dir: Path) -> dict:
                      "finished": done})
     table = pd.DataFrame(rows)
     table["speedup"] = table["wall_seconds"].iloc[0] / table["wall_seconds"]
-    table.to_csv(out_dir / "bench_sweep.csv", index=False)
+    run.table(table, "bench_sweep")
     log.info("\n" + table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     return {f"jobs{r.jobs}_wall_seconds": r.wall_seconds for r in table.itertuples()} | \
         {f"jobs{r.jobs}_speedup": r.speedup for r in table.itertuples()}

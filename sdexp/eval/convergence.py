@@ -31,9 +31,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from sdexp.cache import cached_arrays, key_of
+from dataclasses import replace
+
+from sdexp.cache import cached_arrays, config_key, key_of
 from sdexp.errors import UserError
-from sdexp.config import drone_key
 from sdexp.sim.drone import build_drone
 from sdexp.sim.physics.fem import FemModel
 from sdexp.sim.rigid.geometry import hover_thrust, rigid_body
@@ -42,7 +43,7 @@ from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
 from sdexp.sim.rigid.statics import outer_rotors
 
-FORMAT = 6   # 6: the load from the design's rotor anchors and normals (fixed_load)
+FORMAT = 7   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
                            # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)
 
@@ -198,15 +199,15 @@ def richardson(h, b) -> tuple[float, float, float]:
     return float(b_inf), float(p), float(abs(b_inf - b[2]))
 
 
-def refined(mesh, r: float, dim: int) -> dict:
-    """The reference mesh settings r times finer: edge_length / r, and in 3D always a plate
+def refined(mesh, r: float, dim: int):
+    """The reference mesh settings (a MeshConfig) r times finer: edge_length / r, and in 3D always a plate
     extruded through the thickness in at least two layers (layers x r, rounded up): fTetWild's
     meshes keep the surface only to its envelope (a few mm, which on a 0.15 m shell is 20% of
     its bending stiffness) however fine they are, an extruded mesh keeps it exactly."""
     out = {"edge_length": float(mesh.edge_length) / r}
     if dim == 3:
-        out["layers"] = max(2, int(np.ceil(max(1, mesh.get("layers", 0)) * r - 1e-9)))
-    return out
+        out["layers"] = max(2, int(np.ceil(max(1, mesh.layers) * r - 1e-9)))
+    return replace(mesh, **out)
 
 
 def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravity: float = 9.81,
@@ -214,15 +215,13 @@ def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravit
     """static_response of ``element`` meshes r times finer (``refined``) for r in ``refine`` and
     the Richardson extrapolate of each quantity (``<q>_converged``, ``<q>_order``,
     ``<q>_uncertainty``); cached (fine 3D meshes take minutes to make)."""
-    from omegaconf import OmegaConf
-
-    payload = {"drone": drone_key(OmegaConf.to_container(drone_cfg, resolve=True)), "refine": list(refine),
+    payload = {"drone": config_key(drone_cfg), "refine": list(refine),
                "gravity": gravity, "load": load, "element": element}
 
     def make():
         rows = []
         for r in refine:
-            cfg = OmegaConf.merge(drone_cfg, {"mesh": refined(drone_cfg.mesh, r, int(drone_cfg.dim))})
+            cfg = replace(drone_cfg, mesh=refined(drone_cfg.mesh, r, int(drone_cfg.dim)))
             drone = build_drone(cfg, cache_dir, element)
             res = static_response(drone, gravity, load)
             rows.append([element_size(drone), drone.fem.n_elems, res["bend"], res["compliance"]])

@@ -1,8 +1,9 @@
-"""Experiment registry and the bookkeeping every run shares: validation, seeding, the saved
-resolved config, an atomic metrics.json, and resuming (a job whose metrics.json exists skips)."""
+"""The bookkeeping every run shares: validation, the one conversion of the config to dataclasses,
+the runner its ``experiment._target_`` names, seeding, the saved resolved config, an atomic
+metrics.json, and resuming (a job whose metrics.json exists skips)."""
 from __future__ import annotations
 
-import difflib
+import dataclasses
 import importlib
 import json
 import logging
@@ -10,163 +11,49 @@ import os
 import random
 import socket
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from sdexp import conf
 from sdexp.cache import atomic_write
-from sdexp.config import ELEMENTS, validate
-from sdexp.errors import UserError
+from sdexp.config import Config, validate
+from sdexp.errors import UserError, one_line
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
-# name -> "module:function"; each function is run(cfg, out_dir) -> dict of metrics
-RUNNERS = {
-    "ablation_decomposition": "sdexp.eval.ablation_decomposition:run",
-    "ablation_fixed_point": "sdexp.eval.ablation_fixed_point:run",
-    "bench_control": "sdexp.eval.bench_control:run",
-    "bench_sim": "sdexp.eval.bench_sim:run",
-    "bench_sweep": "sdexp.eval.bench_sweep:run",
-    "discrepancy": "sdexp.discrepancy.workflow:run",
-    "discrepancy_bench": "sdexp.discrepancy.bench:run",
-    "gallery": "sdexp.eval.gallery:run",
-    "hover_deform": "sdexp.eval.hover_deform:run",
-    "model_test": "sdexp.eval.model_test:run",
-    "record": "sdexp.discrepancy.record:run",
-    "report": "sdexp.eval.report:run",
-    "nsweep": "sdexp.eval.nsweep:run",
-    "obstacle": "sdexp.eval.obstacle:run",
-    "sota": "sdexp.eval.sota:run",
-    "validate_fem": "sdexp.eval.validate_fem:run",
-}
+def runner(cfg) -> Callable:
+    """The experiment's runner: the function its ``experiment._target_`` names."""
+    from hydra.utils import get_method
+    try:
+        return get_method(str(cfg.experiment._target_))
+    except Exception as err:   # noqa: BLE001 - Hydra wraps whatever the import raised
+        raise UserError(f"experiment._target_ = {cfg.experiment._target_!r} cannot be imported: {one_line(err)}") from None
 
 
-# experiment.params entries that are themselves structured: (experiment, key) -> "module:dataclass"
-NESTED_PARAMS = {("validate_fem", "beam"): "sdexp.eval.validate_fem:Beam"}
-
-# ranges of the params that several experiments share (by name); the rest need only their type
-_POSITIVE = (lambda v: v > 0, "> 0")
-_NONNEGATIVE = (lambda v: v >= 0, ">= 0")
-PARAM_RANGES = {
-    "seconds": _POSITIVE, "scaling_seconds": _POSITIVE, "rollout_seconds": _POSITIVE,
-    "horizon_seconds": _POSITIVE, "plot_seconds": _POSITIVE, "settle_seconds": _NONNEGATIVE,
-    "ramp_seconds": _POSITIVE, "hold_seconds": _NONNEGATIVE, "fold_start": _NONNEGATIVE,
-    "fold_seconds": _POSITIVE, "distance": _POSITIVE, "bend_load": _NONNEGATIVE,
-    "samples": _POSITIVE, "trials": _POSITIVE, "descent_steps": _POSITIVE, "relinearize_every": _POSITIVE,
-    "flight_attempts": _POSITIVE, "workers": _POSITIVE, "seeds": _NONNEGATIVE, "nulls": _NONNEGATIVE,
-    "unmodelled": _NONNEGATIVE, "variants": _NONNEGATIVE, "raw_hidden": _POSITIVE, "drone_edge_length": _POSITIVE,
-    "test_seed_offset": _NONNEGATIVE, "scaling_edges": _POSITIVE, "n_values": _POSITIVE,
-    "layers": _POSITIVE, "jobs": _POSITIVE, "refine": _POSITIVE, "noise_levels": _NONNEGATIVE,
-}
+def _hook(fn: Callable, name: str) -> Callable | None:
+    """A function beside the runner in its module (check, summary), or None."""
+    return getattr(importlib.import_module(fn.__module__), name, None)
 
 
-def param_defaults(name: str) -> dict:
-    """The experiment's params as its conf/experiment/<name>.yaml declares them: the keys a run
-    may set (every one, with its default), nothing else."""
-    declared = conf.read("experiment", name)
-    if declared is None:
-        return {}
-    params = OmegaConf.select(declared, "experiment.params")
-    return dict(OmegaConf.to_container(params)) if params is not None else {}
+def typed(cfg: DictConfig) -> Config:
+    """The config as dataclasses, once, at the runner boundary: cfg.experiment.params becomes its
+    experiment's params dataclass, whose construction checks its ranges (sdexp.experiment_params)."""
+    return OmegaConf.to_object(cfg)
 
 
-def _kind(value: Any) -> str:
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, int):
-        return "an integer"
-    if isinstance(value, float):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, (list, tuple)):
-        return "a list"
-    if isinstance(value, dict):
-        return "a mapping"
-    return type(value).__name__
-
-
-def _same_kind(default: Any, value: Any) -> bool:
-    if default is None or value is None:
-        return True
-    if isinstance(default, float) and not isinstance(value, bool):
-        return isinstance(value, (int, float))
-    return _kind(default) == _kind(value)
-
-
-def _check_nested(full: str, default: dict, value: dict) -> None:
-    """A mapping param with declared entries (e.g. layers: {linear: {...}}): no entry it lacks."""
-    for sub, v in value.items():
-        if sub not in default:
-            raise UserError(f"{full}.{sub} is not a parameter: allowed {', '.join(map(str, default))}")
-        if isinstance(default[sub], dict) and default[sub] and isinstance(v, dict):
-            _check_nested(f"{full}.{sub}", default[sub], v)
-
-
-def _leaves(value) -> list:
-    """The numbers of a param: itself, a list's items, or (a dict of lists, per element type
-    or dimension) all of theirs."""
-    if isinstance(value, dict):
-        return [v for sub in value.values() for v in _leaves(sub)]
-    return list(value) if isinstance(value, list) else [value]
-
-
-def check_params(cfg: DictConfig) -> None:
-    """experiment.params against the experiment's declared params: a misspelled or foreign key,
-    a missing one, a value of the wrong type or range, an unknown drone: a UserError naming
-    experiment.params.<key> and what is allowed."""
-    name = cfg.experiment.name
-    defaults = param_defaults(name)
-    given = OmegaConf.to_container(cfg.experiment.params, resolve=True) or {}
-    allowed = ", ".join(sorted(defaults)) or "none"
-    for key in given:
-        if key not in defaults:
-            close = difflib.get_close_matches(key, list(defaults), n=1)
-            hint = f" (did you mean experiment.params.{close[0]}?)" if close else ""
-            raise UserError(f"experiment.params.{key} is not a parameter of {name}{hint}: "
-                            f"allowed {allowed}")
-    for key, default in defaults.items():
-        full = f"experiment.params.{key}"
-        if key not in given:
-            raise UserError(f"{full} is missing: {name} needs it (its default is {default!r} "
-                            f"in conf/experiment/{name}.yaml)")
-        value = given[key]
-        if not _same_kind(default, value):
-            raise UserError(f"{full} = {value!r} is {_kind(value)}: allowed {_kind(default)} "
-                            f"like the default {default!r}")
-        if isinstance(default, int) and not isinstance(default, bool) and isinstance(value, float):
-            raise UserError(f"{full} = {value!r}: allowed a whole number")
-        if key in PARAM_RANGES and value is not None:
-            ok, text = PARAM_RANGES[key]
-            items = _leaves(value)
-            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and ok(v) for v in items):
-                raise UserError(f"{full} = {value!r} is out of range: allowed {text}"
-                                + (" each" if isinstance(value, list) else ""))
-        if isinstance(default, dict) and default and isinstance(value, dict):
-            _check_nested(full, default, value)
-        if (name, key) in NESTED_PARAMS and isinstance(value, dict):
-            module, attr = NESTED_PARAMS[(name, key)].split(":")
-            import dataclasses
-            fields = [f.name for f in dataclasses.fields(getattr(importlib.import_module(module), attr))]
-            for sub in value:
-                if sub not in fields:
-                    raise UserError(f"{full}.{sub} is not a parameter of {name}'s {key}: allowed "
-                                    f"{', '.join(fields)}")
-        if key == "animate" and isinstance(value, list):   # sota: which of its flights are drawn
-            flown = list(given.get("controllers") or [])
-            stray = [c for c in value if c not in flown]
-            if stray:
-                raise UserError(f"{full} = {value!r}: {stray[0]!r} is not flown: allowed a list of the "
-                                f"controllers in experiment.params.controllers ({', '.join(map(str, flown)) or 'none'})")
-        if key == "elements" and not set(value) <= set(ELEMENTS):
-            raise UserError(f"{full} = {value!r}: allowed a list of {', '.join(ELEMENTS)}")
-        if key in ("drones", "scaling_drone") and value is not None:
-            names = conf.names("drone")
-            for d in (value if isinstance(value, list) else [value]):
-                if d not in names:
-                    raise UserError(f"{full}: drone {d!r} is unknown: choose from {', '.join(names)}")
+def check_groups(params) -> None:
+    """The params that name config options (a drone, an experiment) name existing ones."""
+    for f in dataclasses.fields(params):
+        group, value = f.metadata.get("group"), getattr(params, f.name)
+        if group is None or value is None:
+            continue
+        names = conf.names(group)
+        for v in (value if isinstance(value, list) else [value]):
+            if v not in names:
+                raise UserError(f"experiment.params.{f.name}: {group} {v!r} is unknown: choose from {', '.join(names)}")
 
 
 # experiments that run a list of drones (experiment.params.drones): only the one named drone=<name>
@@ -174,13 +61,13 @@ def check_params(cfg: DictConfig) -> None:
 MULTI_DRONE = ("bench_sim", "gallery")
 
 
-def check_overrides_reach(cfg: DictConfig, overrides: list[str] | None) -> None:
+def check_overrides_reach(cfg: Config, overrides: list[str] | None) -> None:
     """A drone.* override that no drone of the run would see is an error, not a silent no-op."""
     name = cfg.experiment.name
     if not overrides or name not in MULTI_DRONE:
         return
     touched = [o for o in overrides if o.lstrip("+~").startswith("drone.")]
-    drones = cfg.experiment.params.get("drones")
+    drones = getattr(cfg.experiment.params, "drones", None)
     if touched and drones is not None and cfg.drone.name not in drones:
         raise UserError(f"{touched[0]} changes drone {cfg.drone.name}, which {name} does not run "
                         f"(experiment.params.drones = {list(drones)}; the others are loaded from "
@@ -266,9 +153,11 @@ def _flat(node: Any, prefix: str = "") -> dict:
 
 
 # keys that say where a run looks things up or how many cores it may use, not what it computes
+# (experiment._target_: where its code is)
 # (sweep_dir: what a report reads is compared as experiment.params.sweep_dir; animate: whether
 # a flight is also drawn, its numbers are the same bit for bit)
-NOT_COMPARED = ("cache_dir", "cores", "sweep_dir", "experiment.params.animate", "experiment.params.paraview")
+NOT_COMPARED = ("cache_dir", "cores", "sweep_dir", "experiment._target_", "experiment.params.animate",
+                "experiment.params.paraview")
 
 
 def config_differences(saved: dict, current: dict) -> list[str]:
@@ -311,18 +200,20 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
     """Validate ``cfg``, take ``out_dir`` for this run, and run the experiment there; a folder
     whose run finished with the same resolved config returns that run's metrics."""
     name = cfg.experiment.name
-    if name not in RUNNERS:
-        raise UserError(f"experiment.name = {name!r} is unknown: choose one of {sorted(RUNNERS)}")
+    experiments = conf.names("experiment")
+    if name not in experiments:
+        raise UserError(f"experiment.name = {name!r} is unknown: choose one of {experiments}")
     validate(cfg)
-    check_params(cfg)
-    check_overrides_reach(cfg, overrides)
+    config = typed(cfg)   # the one conversion: below here, dataclasses
+    check_groups(config.experiment.params)
+    check_overrides_reach(config, overrides)
     from sdexp.sim.drone import make_shape
-    make_shape(cfg.drone)   # the design's params (an unknown drone.params key) before anything is written
-    module, func = RUNNERS[name].split(":")
-    runner = importlib.import_module(module)
-    if hasattr(runner, "check"):
-        runner.check(cfg)   # the experiment's own input (a report's sweep folder) before anything is written
+    make_shape(config.drone)   # the design's params (an unknown drone.params key) before anything is written
+    fn = runner(cfg)
     out_dir = Path(out_dir)
+    check = _hook(fn, "check")
+    if check is not None:
+        check(Run(config, out_dir))   # the experiment's own input (a report's sweep folder) before anything is written
     resolved = OmegaConf.to_container(cfg, resolve=True)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -347,28 +238,28 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
         except OSError as err:
             raise UserError(f"cannot write the run's output folder {out_dir}: {err.strerror or err} "
                             f"(choose a writable one with hydra.run.dir=<folder>)") from None
-        seed_everything(int(cfg.seed))
+        seed_everything(int(config.seed))
         from sdexp.parallel import fit_to_cores, job_cores, limited_threads
-        cores, jobs = job_cores(cfg.get("cores"))
-        run_cfg, changed = fit_to_cores(cfg, cores)
-        log.info(f"sdexp: {name} (seed {cfg.seed}) on {cores} core{'s' if cores > 1 else ''}"
+        cores, jobs = job_cores(config.cores)
+        config, changed = fit_to_cores(config, cores)
+        log.info(f"sdexp: {name} (seed {config.seed}) on {cores} core{'s' if cores > 1 else ''}"
                  + (f", {jobs} jobs side by side" if jobs > 1 else "")
                  + (f" ({', '.join(changed)})" if changed else "") + f" -> {out_dir}")
         with limited_threads(cores):
-            metrics = getattr(runner, func)(run_cfg, out_dir)
+            metrics = fn(Run(config, out_dir))
         write_json(done, metrics)
         return metrics
     finally:
         lock.unlink(missing_ok=True)
 
 
-def summary(cfg, metrics: dict, lines: int = 12) -> str:
-    """What a run prints last: the runner's own table beside the paper's (its ``summary(cfg,
+def summary(cfg: DictConfig, metrics: dict, lines: int = 12) -> str:
+    """What a run prints last: the runner's own table beside the paper's (its ``summary(params,
     metrics)``) where it has one, else the first scalar metrics rounded; all of them are in
     metrics.json."""
-    runner = importlib.import_module(RUNNERS[cfg.experiment.name].split(":")[0])
-    if hasattr(runner, "summary"):
-        return runner.summary(cfg, metrics)
+    own = _hook(runner(cfg), "summary")
+    if own is not None:
+        return own(OmegaConf.to_object(cfg.experiment.params), metrics)
     scalars = [(k, v) for k, v in metrics.items() if not isinstance(v, (dict, list))]
     text = [f"  {k}: {v:.4g}" if isinstance(v, float) else f"  {k}: {v}" for k, v in scalars[:lines]]
     if len(scalars) > lines:

@@ -15,11 +15,11 @@ class Setup:
     """The drone, the learned model (cached data and networks) and simulators for cfg."""
 
     def __init__(self, cfg, progress: bool = True):
-        from sdexp.eval.model_test import prepare
+        from sdexp.model.identification import identify
         from sdexp.sim.drone import build_drone
 
         self.cfg = cfg
-        self.data, self.trained, self.dyn = prepare(cfg, progress)
+        self.data, self.trained, self.dyn = identify(cfg, progress)
         self.drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
         self.progress = progress
 
@@ -50,7 +50,7 @@ class Setup:
                 bar.update()
             if watch is not None:
                 watch(sim)
-        flight = fly(sim, controller, task, on_step=on_step, limits=getattr(self.cfg, "flight", None),
+        flight = fly(sim, controller, task, on_step=on_step, limits=self.cfg.flight,
                      recorder=recorder)
         if bar is not None:
             bar.close()
@@ -69,7 +69,7 @@ class Setup:
             return
         from sdexp.eval.animation import save_flight
         save_flight(out_dir, stem, recorder, self.drone, list(self.cfg.sim.obstacles), title, self.progress,
-                    paraview=bool(self.cfg.experiment.params.get("paraview", False)))
+                    paraview=bool(getattr(self.cfg.experiment.params, "paraview", False)))
 
 
 def ending(m: dict) -> str:

@@ -1,28 +1,28 @@
 """``sdexp experiment=gallery``: every drone's mesh with its rotors and IMUs, at a glance."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 
-from sdexp.eval.bench_sim import load_drone_cfg
+from sdexp.eval.bench_sim import drone_config
+from sdexp.run import Run
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.mesh.surface import face_normals
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(run: Run) -> dict:
     from sdexp.figures import pyplot
     plt = pyplot()
     from tqdm import tqdm
 
-    names = list(cfg.experiment.params.get("drones") or drone_names())
+    cfg = run.cfg
+    names = list(run.params.drones or drone_names())
     cols = 4
     rows = int(np.ceil(len(names) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.6 * rows), squeeze=False)
     table = []
     for ax, name in zip(axes.ravel(), tqdm(names, desc="gallery", disable=None)):
-        d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
+        d = drone_config(cfg, name)
         drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
         x = drone.fem.rest
         plane = [0, 2] if drone.dim == 3 else [0, 1]
@@ -56,8 +56,7 @@ def run(cfg, out_dir: Path) -> dict:
     axes.ravel()[0].legend(fontsize=7, loc="upper left")
     fig.suptitle("sdexp drones: 3D top views (X-Z, +Y up), 2D in X-Y; s-order numbered", fontsize=12)
     fig.tight_layout()
-    fig.savefig(out_dir / "drones.png", dpi=110)
-    plt.close(fig)
-    pd.DataFrame(table).to_csv(out_dir / "drones.csv", index=False)
+    run.figure(fig, "drones", dpi=110)
+    run.table(pd.DataFrame(table), "drones")
     return {f"{r['drone']}_elements": r["elements"] for r in table}
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, ending, flight_table
+from sdexp.run import Run
 
 
 def schedule(n_s: int, angle: float, settle: float, ramp: float, hold: float) -> tuple[list, list]:
@@ -35,9 +36,8 @@ def schedule(n_s: int, angle: float, settle: float, ramp: float, hold: float) ->
     return times, [list(x) for x in targets]
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
-    out_dir = Path(out_dir)
+def run(run: Run) -> dict:
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
     setup = Setup(cfg)
     dyn = setup.dyn
     times, targets = schedule(dyn.n_s, np.deg2rad(float(p.angle_deg)), float(p.settle_seconds),
@@ -50,7 +50,7 @@ def run(cfg, out_dir: Path) -> dict:
     setup.animate(out_dir, "hover_deform", rec, f"{cfg.drone.name}: hover with active deformation "
                   f"({float(p.angle_deg):g} deg); {ending(m)}")
     tab = flight_table(flight, dyn)
-    tab.to_csv(out_dir / "hover_deform.csv", index=False)
+    run.table(tab, "hover_deform")
     a = flight.arrays()
     sl = dyn.slices
     after = a["t"] >= float(p.settle_seconds)
@@ -99,7 +99,7 @@ def _plot(tab, a, dyn, settle: float, path: Path, drone: str, out: dict) -> None
     plt.close(fig)
 
 
-def summary(cfg, metrics: dict) -> str:
+def summary(params, metrics: dict) -> str:
     """The measured deviations beside the paper's band."""
     m = metrics
     return "\n".join([

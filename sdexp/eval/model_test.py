@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,24 +47,16 @@ import pandas as pd
 import torch
 
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
-from sdexp.model.training import DECOMPOSED, design, design_rows, history_table, loss_plot, train_models
+from sdexp.model.specs import DECOMPOSED
+from sdexp.model.identification import identify
+from sdexp.model.training import design, design_rows, history_table, loss_plot
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
 
 GROUPS = ("s", "e", "p")
 VEL = {"s": "s_dot", "e": "e_dot", "p": "p_dot"}
-
-
-def prepare(cfg, progress: bool = True):
-    """(dataset, trained d/g/h, LearnedDynamics) for cfg, from the caches where possible."""
-    from sdexp.model.dataset import load_dataset
-
-    data = load_dataset(cfg)
-    trained = train_models(data, cfg.model, int(cfg.seed), cfg.cache_dir, float(cfg.data.validation_fraction),
-                           DECOMPOSED, progress)
-    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon))
-    return data, trained, dyn
 
 
 def channel_names(sizes: dict) -> dict[str, list[str]]:
@@ -199,13 +192,11 @@ def input_jacobian_check(cfg, dyn: LearnedDynamics, steps: tuple[int, ...] = (1,
     B_sim| / |B_sim| (Frobenius), ``sign_agreement`` = fraction of the entries above 10% of the
     block's largest whose signs agree. Over one step the response is local (the thrust has not
     reached the rest of a soft body yet); over ten, rigid-like."""
-    from omegaconf import OmegaConf
-
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
 
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
-    quiet = OmegaConf.merge(cfg.noise, {"enabled": False})
+    quiet = replace(cfg.noise, enabled=False)
     u0 = np.full(dyn.m, float(cfg.drone.mass) * float(cfg.sim.gravity) / dyn.m)
     x0 = Simulator(drone, cfg.sim, quiet).state(noisy=False).x
     _, _, B_learned = dyn.linearize(x0, u0)
@@ -343,17 +334,16 @@ def speed_table(data, trained) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
+def run(run: Run) -> dict:
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
     dt = float(cfg.sim.control_dt)                  # between rows, commands and rollout steps
     horizon = int(cfg.model.horizon)
     alpha = dt * horizon                            # between a net's input and its target
-    data, trained, dyn = prepare(cfg)
-    out_dir = Path(out_dir)
-    history_table(trained).to_csv(out_dir / "training.csv", index=False)
+    data, trained, dyn = identify(cfg)
+    run.table(history_table(trained), "training")
     loss_plot(trained, out_dir / "training.png", f"{cfg.drone.name}: d, g, h training")
     metrics: dict = {"nets_cached": trained.cached, "train_wall_seconds": float(trained.wall_seconds)}
-    speed_table(data, trained).to_csv(out_dir / "bench_model.csv", index=False)
+    run.table(speed_table(data, trained), "bench_model")
     for n, h in trained.history.items():
         metrics[f"train_seconds_{n}"] = float(trained.seconds[n])
         metrics[f"val_l1_{n}"] = float(h["val_l1"][h["selected"]].iloc[0] if h["selected"].any() else h["val_l1"].iloc[-1])
@@ -362,8 +352,8 @@ def run(cfg, out_dir: Path) -> dict:
     # (a) acceleration on held-out episodes
     _, val_idx = data.split(float(cfg.data.validation_fraction), int(cfg.seed))
     table, series, rows = acceleration_test(data, trained, val_idx, alpha, horizon)
-    table.to_csv(out_dir / "acceleration_r2.csv", index=False)
-    acceleration_plot(data, rows, series, table, dt, float(p.get("plot_seconds", 5.0)),
+    run.table(table, "acceleration_r2")
+    acceleration_plot(data, rows, series, table, dt, float(p.plot_seconds),
                       out_dir / "acceleration.png")
     for g, grp in table.groupby("group", sort=False):
         metrics[f"r2_mean_{VEL[g]}"] = float(grp["r2"].mean())
@@ -373,37 +363,37 @@ def run(cfg, out_dir: Path) -> dict:
 
     # (c) the learned input Jacobian against the simulator's (what the LQR relies on)
     jac = input_jacobian_check(cfg, dyn)
-    jac.to_csv(out_dir / "input_jacobian.csv", index=False)
+    run.table(jac, "input_jacobian")
     for r in jac.itertuples():
         metrics[f"input_jacobian_{r.block}_{r.steps}step_rel_error"] = r.rel_error
         metrics[f"input_jacobian_{r.block}_{r.steps}step_sign_agreement"] = r.sign_agreement
     log.info(jac.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
     # (b) rollout of the linearized model against a test flight
-    seconds = float(p.get("rollout_seconds", 70.0))
-    every = int(p.get("relinearize_every", 5))
+    seconds = float(p.rollout_seconds)
+    every = int(p.relinearize_every)
     steps = int(round(seconds / dt))
     found = _episode_from_data(data, val_idx, steps)
     if found is not None:
         X_true, U = found
         metrics["flight_source"] = "held-out episode"
     else:
-        X_true, U, used_seed = simulate_flight(cfg, seconds, int(cfg.seed) + int(p.get("test_seed_offset", 10000)),
-                                               int(p.get("flight_attempts", 5)))
+        X_true, U, used_seed = simulate_flight(cfg, seconds, int(cfg.seed) + int(p.test_seed_offset),
+                                               int(p.flight_attempts))
         metrics["flight_source"] = f"simulated, seed {used_seed}"
     T = len(U)
     t = dt * np.arange(T + 1)
     metrics["flight_seconds"] = float(T * dt)
     X_lin, lin_times = rollout(dyn, X_true[0], U, every, linear=True)
     X_nl, _ = rollout(dyn, X_true[0], U, every, linear=False)
-    restart = max(1, int(round(float(p.get("horizon_seconds", 1.0)) / dt)))
+    restart = max(1, int(round(float(p.horizon_seconds) / dt)))
     X_hz, _ = rollout(dyn, X_true[0], U, every, linear=True, X_true=X_true, restart=restart)
     X_hz_nl, _ = rollout(dyn, X_true[0], U, every, linear=False, X_true=X_true, restart=restart)
     errs = {"linearized": state_errors(dyn, X_lin, X_true), "nonlinear": state_errors(dyn, X_nl, X_true)}
     cols = {"t": t}
     for mode, e in errs.items():
         cols.update({f"{mode}_{k}": v for k, v in e.items()})
-    pd.DataFrame(cols).to_csv(out_dir / "rollout.csv", index=False)
+    run.table(pd.DataFrame(cols), "rollout")
     rollout_plot(t, X_true, {"linearized (20 Hz)": X_lin, "nonlinear": X_nl}, errs, dyn,
                  channel_names(state_sizes(data)), out_dir / "rollout.png")
 
@@ -431,7 +421,7 @@ def run(cfg, out_dir: Path) -> dict:
                 row[f"{mode}_{blk}"] = float(np.median(w)) if len(idx) else np.nan
         rows.append(row)
     horizon = pd.DataFrame(rows)
-    horizon.to_csv(out_dir / "rollout_horizon.csv", index=False)
+    run.table(horizon, "rollout_horizon")
 
     for mode, e in errs.items():
         for sec in (1.0, 10.0, 60.0):

@@ -5,33 +5,33 @@ Writes ``nsweep.csv`` (survival, final error, mean error over the last 5 s, thru
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
 from sdexp.eval.controllers import ours
 from sdexp.eval.flights import Setup, flight_table
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
-    out_dir = Path(out_dir)
+def run(run: Run) -> dict:
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
     setup = Setup(cfg)
     task = setup.task(np.asarray(p.start, float), np.asarray(p.target, float), float(p.seconds))
     rows, tables = [], {}
     for n in p.n_values:
-        c = OmegaConf.merge(cfg, {"control": {"n": int(n)}})
+        c = replace(cfg, control=replace(cfg.control, n=int(n)))
         sim = setup.simulator()
         flight, m = setup.fly(sim, ours(c, setup.dyn, setup.drone.max_thrust), task, f"n = {n}")
         tables[int(n)] = flight_table(flight, setup.dyn)
         rows.append({"n": int(n), "relinearization_hz": 1.0 / (int(n) * float(cfg.sim.control_dt)), **m})
         log.info(f"sdexp: n = {n}: survived {m['survival_time']:.2f} s, final error {m['final_error']:.3f} m")
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "nsweep.csv", index=False)
+    run.table(table, "nsweep")
     _plot(table, tables, np.asarray(p.target, float), out_dir / "nsweep.png", cfg.drone.name)
     out = {}
     for r in rows:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, ending, flight_table
+from sdexp.run import Run
 from sdexp.sim.rigid.statics import held_bend, outer_rotors
 
 
@@ -44,9 +45,8 @@ def touching(points: np.ndarray, boxes, margin: float = 1e-3) -> bool:
     return False
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
-    out_dir = Path(out_dir)
+def run(run: Run) -> dict:
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
     setup = Setup(cfg)
     dyn = setup.dyn
     if dyn.dim != 3:
@@ -74,7 +74,7 @@ def run(cfg, out_dir: Path) -> dict:
     tab = flight_table(flight, dyn)
     tab["width_z"] = [rest_width] + widths[: len(tab) - 1]
     tab["contact"] = [False] + contact[: len(tab) - 1]
-    tab.to_csv(out_dir / "obstacle.csv", index=False)
+    run.table(tab, "obstacle")
     a = flight.arrays()
     gap_start = min((float(b.min[0]) for b in boxes), default=0.0)
     gap_end = max((float(b.max[0]) for b in boxes), default=0.0)
@@ -157,7 +157,7 @@ def _gap_width(boxes) -> float | None:
     return (min(above) - max(below)) if above and below else None
 
 
-def summary(cfg, metrics: dict) -> str:
+def summary(params, metrics: dict) -> str:
     """Fold, narrowing and Z hold beside the paper's figures."""
     m = metrics
     result = "passed" if m["passed"] else ("hit the blocks" if m["hit_obstacle"] else "did not pass")

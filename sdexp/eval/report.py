@@ -17,33 +17,29 @@ from pathlib import Path
 
 from sdexp.errors import UserError
 from sdexp.eval import stats
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
 
-def _params(cfg):
-    p = cfg.experiment.params
+def _params(p):
     if p.sweep_dir is None or str(p.sweep_dir).strip() == "":
         raise UserError("experiment.params.sweep_dir is not set: name the sweep to aggregate, e.g. "
                         "sdexp experiment=report sweep_dir=multirun/sota/<time>")
-    confidence = float(p.confidence)
-    if not 0 < confidence < 1:
-        raise UserError(f"experiment.params.confidence = {p.confidence!r} is out of range: allowed in (0, 1)")
-    return Path(str(p.sweep_dir)).expanduser(), confidence
+    return Path(str(p.sweep_dir)).expanduser(), float(p.confidence)
 
 
-def check(cfg) -> None:
+def check(run: Run) -> None:
     """Before the run folder is written: the sweep folder exists and holds finished jobs."""
-    sweep_dir, _ = _params(cfg)
+    sweep_dir, _ = _params(run.params)
     stats.find_jobs(sweep_dir)
 
 
-def run(cfg, out_dir: Path) -> dict:
-    sweep_dir, confidence = _params(cfg)
+def run(run: Run) -> dict:
+    sweep_dir, confidence = _params(run.params)
     table = stats.aggregate(sweep_dir, confidence)
-    csv = out_dir / "stats.csv"
-    table.to_csv(csv, index=False, float_format="%.6g")
-    stats.plot(table, out_dir / "stats.png", title=sweep_dir.resolve().name)
+    csv = run.table(table, "stats", float_format="%.6g")
+    stats.plot(table, run.path("stats.png"), title=sweep_dir.resolve().name)
     groups = list(dict.fromkeys(table["group"]))
     jobs = int(table.drop_duplicates("group")["jobs"].sum()) if len(table) else 0
     log.info(f"sdexp: report over {jobs} jobs in {len(groups)} group{'s' if len(groups) != 1 else ''} "

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from sdexp.eval.flights import Setup, ending, flight_table, position_plot
+from sdexp.experiment_params import SotaParams
+from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
@@ -39,14 +40,13 @@ def _paper_ending(survival: float, seconds: float) -> str:
     return f"survived {survival:g} s" if survival >= seconds else f"failed at {survival:g} s"
 
 
-def run(cfg, out_dir: Path) -> dict:
-    p = cfg.experiment.params
-    out_dir = Path(out_dir)
+def run(run: Run) -> dict:
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
     setup = Setup(cfg)
     seconds = float(p.seconds)
     task = setup.task(np.asarray(p.start, float), np.asarray(p.target, float), seconds)
     rows, tables, titles, out = [], {}, {}, {}
-    animate = set(p.animate or [])
+    animate = set(p.animate)
     for name in p.controllers:
         sim = setup.simulator()
         ctl = setup.controller(name, sim)
@@ -57,7 +57,7 @@ def run(cfg, out_dir: Path) -> dict:
         setup.animate(out_dir, f"sota_{name}", rec, f"{cfg.drone.name}: {LABELS.get(name, name)}, "
                       f"{list(p.start)} -> {list(p.target)}; {ending(m)}")
         tab = flight_table(flight, setup.dyn)
-        tab.to_csv(out_dir / f"trajectory_{name}.csv", index=False)
+        run.table(tab, f"trajectory_{name}")
         tables[name] = tab
         ps, pe, pu = PAPER.get(name, (np.nan,) * 3)
         rows.append({"controller": name, **m, "paper_survival_time": ps, "paper_final_error": pe,
@@ -70,16 +70,16 @@ def run(cfg, out_dir: Path) -> dict:
         log.info(f"sdexp: {name}: survived {m['survival_time']:.2f} s ({m['failure'] or 'whole flight'}), "
                  f"final error {m['final_error']:.3f} m, thrust usage {m['thrust_usage']:.0f} N")
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "sota.csv", index=False)
+    run.table(table, "sota")
     position_plot(tables, titles, out_dir / "sota.png",
                   f"{cfg.drone.name}: {list(p.start)} -> {list(p.target)} in {seconds:g} s (seed {cfg.seed})", seconds)
     return out
 
 
-def summary(cfg, metrics: dict) -> str:
+def summary(params: SotaParams, metrics: dict) -> str:
     """Ours and the baselines beside the paper's table, rounded."""
     rows = [f"  {'controller':<24}{'survival (s)':>14}{'paper':>8}{'final error (m)':>17}{'paper':>9}"]
-    for name in cfg.experiment.params.controllers:
+    for name in params.controllers:
         if f"{name}_survival_time" not in metrics:
             continue
         ps, pe, _ = PAPER.get(name, (float("nan"),) * 3)

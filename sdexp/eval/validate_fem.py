@@ -13,12 +13,13 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import asdict
 
 import numpy as np
 import pandas as pd
 
+from sdexp.experiment_params import BeamParams
+from sdexp.run import Run
 from sdexp.sim.physics.fem import FemModel, build_fem, stable_substep
 from sdexp.sim.physics.integrator import Body
 from sdexp.sim.physics.quadratic import quadratic_mesh
@@ -44,14 +45,8 @@ class FreeBody(Body):
 
 # ------------------------------------------------------------------------------ cantilever
 
-@dataclass
-class Beam:
-    length: float = 1.5
-    thickness: float = 0.225     # the flower's plate thickness
-    width: float = 0.3           # 3D only
-    youngs_modulus: float = 6000.0
-    poisson_ratio: float = 0.3
-    sag: float = 0.01            # Euler-Bernoulli static tip deflection / length (small: linear)
+class Beam(BeamParams):
+    """The cantilever (its dimensions: experiment.params.beam) and its beam theory."""
 
     def second_moment(self, dim: int) -> float:
         return (self.width if dim == 3 else 1.0) * self.thickness ** 3 / 12
@@ -168,14 +163,14 @@ def stiff_plate_under_thrust(thrust: float = 6.0, seconds: float = 0.3, youngs_m
 
 # ------------------------------------------------------------------------------ runner
 
-def run(cfg, out_dir: Path) -> dict:
+def run(run: Run) -> dict:
     from sdexp.eval.plots import drone_accuracy_plot, refinement_plot
     from sdexp.sim.drone import drone_names
 
-    p = dict(cfg.experiment.params)
-    beam = Beam(**p.get("beam", {}))
+    cfg, p, out_dir = run.cfg, run.params, run.out_dir
+    beam = Beam(**asdict(p.beam))
     rows = []
-    for element, layer_lists in p["layers"].items():
+    for element, layer_lists in p.layers.items():
         for dim in (2, 3):
             for layers in layer_lists[f"{dim}d"]:
                 pts, el = structured_beam(beam, dim, layers)
@@ -184,27 +179,27 @@ def run(cfg, out_dir: Path) -> dict:
                              "edge": beam.thickness / layers, "thickness_over_edge": layers, **res})
                 log.info(f"  {element} {dim}D {layers} layers, {len(el)} elements: sag error "
                          f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
-    if p.get("drone_edge_length"):
+    if p.drone_edge_length:
         from sdexp.sim.mesh.tetmesh import tet_mesh
-        edge = float(p["drone_edge_length"])
+        edge = float(p.drone_edge_length)
         v, f = _beam_surface(beam)
         pts, el = tet_mesh(v, f, edge)
-        for element in p["layers"]:
+        for element in p.layers:
             res = cantilever(beam, pts, el, element=element)
             rows.append({"element": element, "mesh": "pytetwild 3D", "layers": np.nan, "edge": edge,
                          "thickness_over_edge": beam.thickness / edge, **res})
             log.info(f"  {element} pytetwild at edge {edge} m, {len(el)} tets: sag error "
                      f"{res['sag_error']:+.1%}, frequency error {res['freq_error']:+.1%}")
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "cantilever.csv", index=False)
+    run.table(table, "cantilever")
     refinement_plot(table, out_dir / "cantilever.png")
-    drone_rows = drone_accuracy(cfg, list(p["drones"] or drone_names()), list(p["refine"]), float(p["bend_load"]))
+    drone_rows = drone_accuracy(cfg, list(p.drones or drone_names()), list(p.refine), float(p.bend_load))
     if drone_rows:
         drones = pd.DataFrame(drone_rows)
-        drones.to_csv(out_dir / "drones.csv", index=False)
+        run.table(drones, "drones")
         drone_accuracy_plot(drones, out_dir / "drones.png")
     rigid = stiff_plate_under_thrust()
-    pd.DataFrame([rigid]).to_csv(out_dir / "stiff_limit.csv", index=False)
+    run.table(pd.DataFrame([rigid]), "stiff_limit")
     metrics = {"rigid_rise_error": rigid["rise"] / rigid["rise_rigid"] - 1}
     for r in drone_rows:
         metrics[f"{r['drone']}_{r['element']}_bend_error"] = r["bend_error"]
@@ -220,13 +215,13 @@ def run(cfg, out_dir: Path) -> dict:
 def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> list[dict]:
     """Every named drone at its default mesh, linear and quadratic, against the converged body
     (sdexp.eval.convergence): the bend its IMUs read and its compliance under a fixed load."""
-    from sdexp.eval.bench_sim import load_drone_cfg
+    from sdexp.eval.bench_sim import drone_config
     from sdexp.eval.convergence import converged_response, response_errors
     from sdexp.sim.drone import build_drone
 
     rows, gravity = [], float(cfg.sim.gravity)
     for name in names:
-        d = cfg.drone if name == cfg.drone.name else load_drone_cfg(name)
+        d = drone_config(cfg, name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for element in ("linear", "quadratic"):
             drone = build_drone(d, cfg.cache_dir, element)

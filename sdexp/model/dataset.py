@@ -25,9 +25,10 @@ config, the seed and its index (see generate.py), on ``data.workers`` processes;
 the same whatever the number of workers. Each chunk is written atomically to
 ``<cache_dir>/<key>.chunks/`` as it finishes, so a killed run resumes with the chunks it has;
 the merged ``<cache_dir>/<key>.npz`` is written atomically and the chunk folder removed. The key
-hashes the drone, sim (less ``threads``), noise and data (less ``workers`` and
-``validation_fraction``) configs, the seed, the chunk size and DATA_FORMAT. A cache file whose
-format, key or arrays do not match is regenerated with a warning, never read.
+hashes the drone, sim (without obstacles: the data are free flights), noise and data (less
+``validation_fraction``: the split is made after loading) configs' key fields (sdexp.cache.config_key:
+no thread or worker counts), the seed, the chunk size and DATA_FORMAT. A cache file whose format,
+key or arrays do not match is regenerated with a warning, never read.
 
 Not covered by the key: the simulator's code. After changing sdexp/sim/ in a way that changes
 its output, bump DATA_FORMAT (or clear the cache).
@@ -41,16 +42,14 @@ import shutil
 import time
 import zipfile
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from omegaconf import OmegaConf
 
-from sdexp.cache import atomic_write, build_lock, key_of
+from sdexp.cache import atomic_write, build_lock, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
-from sdexp.config import drone_key
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +57,7 @@ log = logging.getLogger(__name__)
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
 
-DATA_FORMAT = 2  # 2: continuous bend angle s (sdexp.sensing)
+DATA_FORMAT = 3  # 2: continuous bend angle s (sdexp.sensing); 3: the key from the configs' key fields
 # transitions per chunk (at least one episode's length): small enough to balance two workers
 # and lose little to a kill, big enough that few episodes are cut at a chunk's end
 CHUNK_SAMPLES = 4000
@@ -93,45 +92,33 @@ class Dataset:
 
 # ------------------------------------------------------------------------------ config -> key
 
-def _data_spec(data) -> dict:
-    spec = {k: data[k] for k in ("samples", "hold_seconds", "episode_seconds", "region")}
-    lo, hi = (float(v) for v in data.get("thrust_range", (-1.0, 1.0)))
-    if (lo, hi) != (-1.0, 1.0):   # the paper's recipe keeps the key it had before the options
-        spec["thrust_range"] = [lo, hi]
-    if data.get("around_hover", False):
-        spec["around_hover"] = True
-        if data.get("hover", "rigid") != "rigid":   # the rigid hover keeps the key it had before the option
-            spec["hover"] = data.hover
-    if data.get("deform_range", 0.0) > 0:
-        spec["deform_range"] = float(data.deform_range)
-        spec["deform_hold_seconds"] = float(data.deform_hold_seconds)
-    return spec
-
-
 def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
-    """Everything that determines the data (plus ``cache_dir``, which does not)."""
+    """Everything that determines the data (plus ``cache_dir``, which does not): the drone, sim,
+    noise and data configs (dataclasses), the seed and the chunk size."""
     data = cfg.data
     if chunk_samples is None:
         steps = int(round(data.episode_seconds / cfg.sim.control_dt))
         chunk_samples = max(CHUNK_SAMPLES, steps)
-    sim = OmegaConf.to_container(cfg.sim, resolve=True)
-    sim.pop("threads", None)  # generation always runs single-threaded (generate.py)
-    sim["obstacles"] = []  # a task's scenery: the data are free flights (supplement F)
-    if not sim.get("effects"):
-        sim.pop("effects", None)  # the nominal simulator: same key as before effects existed
     return {
-        "drone": drone_key(OmegaConf.to_container(cfg.drone, resolve=True)),
-        "sim": sim,
-        "noise": OmegaConf.to_container(cfg.noise, resolve=True),
-        "data": _data_spec(data),
+        "drone": cfg.drone,
+        "sim": replace(cfg.sim, obstacles=[]),  # a task's scenery: the data are free flights (supplement F)
+        "noise": cfg.noise,
+        "data": data,
         "seed": int(cfg.seed),
         "chunk_samples": int(chunk_samples),
         "cache_dir": str(Path(cfg.cache_dir).expanduser()),
     }
 
 
+def data_key(data) -> dict:
+    """The data config's part of the key: the split (``validation_fraction``) is made after loading."""
+    return {k: v for k, v in config_key(data).items() if k != "validation_fraction"}
+
+
 def dataset_key(spec: dict) -> str:
-    return key_of("data", DATA_FORMAT, {k: v for k, v in spec.items() if k != "cache_dir"})
+    return key_of("data", DATA_FORMAT, {"drone": config_key(spec["drone"]), "sim": config_key(spec["sim"]),
+                                        "noise": config_key(spec["noise"]), "data": data_key(spec["data"]),
+                                        "seed": spec["seed"], "chunk_samples": spec["chunk_samples"]})
 
 
 # ------------------------------------------------------------------------------ files
@@ -188,7 +175,7 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     from tqdm import tqdm
 
     folder = final.with_suffix(".chunks")
-    samples, chunk = int(spec["data"]["samples"]), spec["chunk_samples"]
+    samples, chunk = int(spec["data"].samples), spec["chunk_samples"]
     sizes = [min(chunk, samples - c * chunk) for c in range(math.ceil(samples / chunk))]
     infos: dict[int, dict] = {}
     for stale in folder.glob(".*.tmp"):   # a killed generator's half-written chunks (the caller holds the lock)
@@ -208,7 +195,7 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
         drone, _ = _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
         spec = {**spec, "centre": hover_centre(drone, spec["data"], sim_config(spec))}  # once, not per worker
     bar = tqdm(total=samples, initial=sum(sizes[c] for c in infos), unit="samples", smoothing=0.05,
-               desc=f"data {spec['drone']['name']}", disable=None)
+               desc=f"data {spec['drone'].name}", disable=None)
     t0 = time.perf_counter()
     try:
         if todo and workers == 1:
@@ -243,10 +230,10 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     n_s, n_e = arrays["s"].shape[1], arrays["e"].shape[1]
     meta = {
         "format": DATA_FORMAT, "key": key, "samples": samples,
-        "drone": d["name"], "dim": int(d["dim"]), "n_s": n_s, "n_e": n_e, "m": arrays["u"].shape[1],
-        "n_raw": arrays["raw"].shape[1], "control_dt": float(spec["sim"]["control_dt"]),
-        "max_thrust": float(d["max_thrust"]), "noise": bool(spec["noise"]["enabled"]),
-        "seed": spec["seed"], **{f"data_{k}": v for k, v in spec["data"].items()},
+        "drone": d.name, "dim": int(d.dim), "n_s": n_s, "n_e": n_e, "m": arrays["u"].shape[1],
+        "n_raw": arrays["raw"].shape[1], "control_dt": float(spec["sim"].control_dt),
+        "max_thrust": float(d.max_thrust), "noise": bool(spec["noise"].enabled),
+        "seed": spec["seed"], **{f"data_{k}": v for k, v in data_key(spec["data"]).items()},
         "episodes": offset, "ends": dict(ends),
         "failures": {r: ends.get(r, 0) for r in FAILURES},
         "chunk_samples": chunk, "chunks": len(sizes), "chunks_resumed": resumed, "workers": workers,

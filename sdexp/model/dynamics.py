@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from sdexp.model.networks import ResidualMLP
-from sdexp.model.training import DECOMPOSED, NetSpec
+from sdexp.model.specs import DECOMPOSED, NetSpec
 
 # which state block holds each network's target velocity
 _TARGET_BLOCK = {"s_dot_next": "s_dot", "e_dot_next": "e_dot", "p_dot_next": "p_dot"}

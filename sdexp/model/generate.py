@@ -28,10 +28,12 @@ import time
 from collections import Counter
 from typing import Callable, Iterator
 
+from dataclasses import replace
+
 import numba as nb
 import numpy as np
-from omegaconf import OmegaConf
 
+from sdexp.cache import config_key
 from sdexp.errors import UserError
 from sdexp.sensing.rotations import euler_and_rates
 from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust
@@ -81,23 +83,20 @@ def _euler_and_rates(rot, omega, idx):
 
 def sim_config(spec: dict):
     """The simulator config of a data spec, single-threaded."""
-    from sdexp.config import SimConfig
-    return OmegaConf.merge(OmegaConf.structured(SimConfig), spec["sim"], {"threads": 1})
+    return replace(spec["sim"], threads=1)
 
 
 def _simulator(spec: dict):
     """Build (or reuse, within this process) the drone and a single-threaded simulator."""
-    from sdexp.config import DroneConfig, NoiseConfig
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
 
-    tag = json.dumps([spec["drone"], spec["sim"], spec["noise"], spec["cache_dir"]], sort_keys=True, default=str)
+    tag = json.dumps([config_key(spec["drone"]), config_key(spec["sim"]), config_key(spec["noise"]),
+                      spec["cache_dir"]], sort_keys=True, default=str)
     if _CACHED.get("tag") != tag:
-        drone_cfg = OmegaConf.merge(OmegaConf.structured(DroneConfig), spec["drone"])
         sim_cfg = sim_config(spec)
-        noise_cfg = OmegaConf.merge(OmegaConf.structured(NoiseConfig), spec["noise"])
-        drone = build_drone(drone_cfg, spec["cache_dir"], sim_cfg.element)
-        sim = Simulator(drone, sim_cfg, noise_cfg, 0)
+        drone = build_drone(spec["drone"], spec["cache_dir"], sim_cfg.element)
+        sim = Simulator(drone, sim_cfg, spec["noise"], 0)
         _CACHED.update(tag=tag, drone=drone, sim=sim)
     return _CACHED["drone"], _CACHED["sim"]
 
@@ -114,30 +113,30 @@ def hover_centre(drone, data, sim_cfg) -> np.ndarray | float:
     """The centre of the data recipe's thrust draw: 0 (the paper's), or with ``around_hover`` the
     rest shape's hover thrust (``hover: rigid``) or the one that holds the body flattest
     (``hover: shape``, sim.statics.shape_hover_thrust: a few seconds of simulation)."""
-    if not data.get("around_hover"):
+    if not data.around_hover:
         return 0.0
-    if data.get("hover", "rigid") == "shape":
+    if data.hover == "shape":
         from sdexp.sim.rigid.statics import shape_hover_thrust
         return shape_hover_thrust(drone, sim_cfg)
-    return rest_hover_thrust(drone, float(sim_cfg["gravity"]))
+    return rest_hover_thrust(drone, float(sim_cfg.gravity))
 
 
 def commands(drone, data, centre: np.ndarray | float, dt: float, rng: np.random.Generator) -> Iterator[np.ndarray]:
-    """The data recipe's command at every control step of one episode (``data``: the data config
-    or its spec dict; ``centre``: hover_centre's): per rotor ``centre`` + U[lo, hi] x Tmax held
+    """The data recipe's command at every control step of one episode (``data``: the data config;
+    ``centre``: hover_centre's): per rotor ``centre`` + U[lo, hi] x Tmax held
     ``hold_seconds``, plus a deformation pattern held ``deform_hold_seconds`` if
     ``deform_range`` > 0. Validates eagerly; yields forever."""
     tmax, m = drone.max_thrust, drone.num_rotors
-    hold = max(1, int(round(data["hold_seconds"] / dt)))
-    lo, hi = (tmax * f for f in data.get("thrust_range", (-1.0, 1.0)))
-    deform = tmax * float(data.get("deform_range", 0.0))
+    hold = max(1, int(round(data.hold_seconds / dt)))
+    lo, hi = (tmax * f for f in data.thrust_range)
+    deform = tmax * float(data.deform_range)
     patterns, deform_hold = None, 1
     if deform > 0:
         patterns = deformation_patterns(drone)
         if patterns.shape[1] == 0:
-            raise UserError(f"data.deform_range = {data['deform_range']}: drone {drone.name}'s "
+            raise UserError(f"data.deform_range = {data.deform_range}: drone {drone.name}'s "
                             f"{m} rotors have no thrust pattern free of net lift and tilting torque; set it to 0")
-        deform_hold = max(1, int(round(data["deform_hold_seconds"] / dt)))
+        deform_hold = max(1, int(round(data.deform_hold_seconds / dt)))
 
     def stream():
         offset, k = 0.0, 0
@@ -160,9 +159,9 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     centre = spec["centre"] if "centre" in spec else hover_centre(drone, spec["data"], sim_config(spec))
     layout = drone.layout
     data = spec["data"]
-    dt = float(spec["sim"]["control_dt"])
-    ep_steps = max(1, int(round(data["episode_seconds"] / dt)))
-    region2 = float(data["region"]) ** 2
+    dt = float(spec["sim"].control_dt)
+    ep_steps = max(1, int(round(data.episode_seconds / dt)))
+    region2 = float(data.region) ** 2
     w = widths(layout.dim, layout.n_s, drone.num_rotors)
     out = {k: np.empty((n, v)) for k, v in w.items()}
     episode = np.empty(n, dtype=np.int32)

@@ -1,9 +1,5 @@
-"""Training the d, g, h networks of Eq. 4 (supplement F), and the undecomposed ablation network.
-
-    d(s, s_dot, u)                      -> s_dot_next
-    g(s, s_dot, e, e_dot, u)            -> e_dot_next
-    h(s, s_dot, e, e_dot, p_dot, u)     -> p_dot_next
-    raw(raw, raw_dot, u)                -> raw_dot_next     (decomposition ablation only)
+"""Training the d, g, h networks of Eq. 4 (supplement F), and the undecomposed ablation network
+(what each reads and predicts: sdexp.model.specs).
 
 Each network is a :class:`~sdexp.model.networks.ResidualMLP` trained separately on the same
 transitions: Adam (``model.lr``), the learning rate multiplied by ``model.lr_decay`` every
@@ -33,7 +29,8 @@ accelerations better (R^2 of s 0.24 vs 0.07) and linearise to a far less unstabl
 history marks the chosen epoch (``selected``). The held-out episodes thus also pick the epoch.
 
 Trained networks are cached under ``cache_dir`` keyed by :func:`sdexp.cache.key_of` over the
-dataset's content hash, the model config, the seed, the network specs and FORMAT_VERSION, and
+dataset's content hash, the model config's key fields (not ``threads``), the seed, the network
+specs and FORMAT_VERSION, and
 written atomically; a cached file whose stored version or key does not match, or that cannot be
 read, is retrained and replaced (with a message), never used.
 """
@@ -44,39 +41,22 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Callable, Sequence
 
 import numpy as np
 import pandas as pd
 import torch
 
-from sdexp.cache import atomic_write, build_lock, key_of
+from sdexp.cache import atomic_write, build_lock, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
 from sdexp.model.networks import ResidualMLP
+from sdexp.model.specs import DECOMPOSED, NetSpec
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 5   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key
-MODEL_KEYS = ("hidden", "blocks", "epochs", "batch_size", "lr", "lr_decay", "lr_step", "loss", "keep_best",
-              "horizon", "linear")
-
-
-@dataclass(frozen=True)
-class NetSpec:
-    name: str
-    inputs: tuple[str, ...]   # dataset keys, concatenated in this order
-    target: str               # dataset key of the next-frame velocity
-    current: str              # dataset key of its current value (one of the inputs)
-
-
-DECOMPOSED = (
-    NetSpec("d", ("s", "s_dot", "u"), "s_dot_next", "s_dot"),
-    NetSpec("g", ("s", "s_dot", "e", "e_dot", "u"), "e_dot_next", "e_dot"),
-    NetSpec("h", ("s", "s_dot", "e", "e_dot", "p_dot", "u"), "p_dot_next", "p_dot"),
-)
-UNDECOMPOSED = (NetSpec("raw", ("raw", "raw_dot", "u"), "raw_dot_next", "raw_dot"),)
+FORMAT_VERSION = 6   # 2: keep_best, "selected"; 3: val_rel_l1; 4: val_rel_l1_channels; 5: keep_best in the key;
+                     # 6: the model config's key fields (sdexp.cache.config_key)
 
 
 @dataclass
@@ -277,15 +257,11 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
 # ------------------------------------------------------------------------------ cache
 
 def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Sequence[NetSpec]) -> str:
-    model = {k: model_cfg[k] if hasattr(model_cfg, "__getitem__") else getattr(model_cfg, k) for k in MODEL_KEYS}
+    """``model_cfg``: a sdexp.config.ModelConfig."""
+    model = {**config_key(model_cfg), "linear": sorted(model_cfg.linear)}   # which nets, in any order
     keys = {k for s in specs for k in (*s.inputs, s.target)}
-    if int(model["horizon"]) == 1:
-        del model["horizon"]     # the paper's one-frame targets keep the key they had before the option
-    else:
+    if int(model_cfg.horizon) > 1:
         keys |= {"u"}            # the rows design() keeps depend on it
-    model["linear"] = sorted(model["linear"])
-    if not model["linear"]:
-        del model["linear"]      # nor do the all-MLP nets
     payload = {
         "data": dataset_key(data, sorted(keys)),
         "model": model,
@@ -362,7 +338,7 @@ def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, 
         if not (ok_tr.all() and ok_va.all()):
             log.warning(f"sdexp: network {spec.name}: dropping {(~ok_tr).sum() + (~ok_va).sum()} non-finite transitions")
             X_tr, Y_tr, X_va, Y_va = X_tr[ok_tr], Y_tr[ok_tr], X_va[ok_va], Y_va[ok_va]
-        jobs.append((X_tr, Y_tr, X_va, Y_va, base, _plain(model_cfg), int(seed) * 1000 + i, spec.name))
+        jobs.append((X_tr, Y_tr, X_va, Y_va, base, model_cfg, int(seed) * 1000 + i, spec.name))
     t0 = time.perf_counter()
     if int(model_cfg.threads) >= 2 and len(jobs) >= 2:
         results = _train_parallel(jobs, int(model_cfg.epochs), progress)
@@ -384,13 +360,6 @@ def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, 
 
 
 # ------------------------------------------------------------------------------ parallel training
-
-def _plain(model_cfg) -> SimpleNamespace:
-    get = (lambda k: model_cfg[k]) if hasattr(model_cfg, "__getitem__") else (lambda k: getattr(model_cfg, k))
-    plain = {k: get(k) for k in (*MODEL_KEYS, "threads")}
-    plain["linear"] = list(plain["linear"])   # not an OmegaConf list in the worker processes
-    return SimpleNamespace(**plain)
-
 
 def _train_job(*args, report):
     net, hist, sec = train_network(*args, progress=False, report=report, threads=1)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sdexp import conf
-from sdexp.cache import cached_arrays, key_of
+from sdexp.cache import cached_arrays, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.config import ELEMENTS
 from sdexp.sim.physics.fem import FemModel, build_fem
@@ -16,7 +16,7 @@ from sdexp.sim.sensors import ImuPatches, build_imu_patches
 from sdexp.sim.mesh.shape import Shape
 from sdexp.sim.mesh.surface import boundary_faces, patch_faces
 
-MESH_FORMAT = 1
+MESH_FORMAT = 2      # 2: the key holds every drone.mesh field (sdexp.cache.config_key)
 LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
 
 
@@ -84,23 +84,19 @@ def make_shape(cfg) -> Shape:
 
 
 def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh ``shape`` with the ``drone.mesh`` settings, through the cache."""
-    planes = list(mesh.get("mirror", []))
-    layers = int(mesh.get("layers", 0))
+    """Mesh ``shape`` with the ``drone.mesh`` settings (a MeshConfig), through the cache."""
+    planes = list(mesh.mirror)
+    layers = int(mesh.layers)
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
-               "h": shape.holes.round(12).tolist(), "edge": mesh.edge_length,
-               "tetwild": [mesh.stop_energy, mesh.coarsen] if shape.dim == 3 and not layers else None}
-    if layers:   # the fTetWild meshes keep the keys they had before the option
-        if shape.layered_mesh is None:
-            raise UserError(f"drone.mesh.layers = {layers}: the {shape.dim}D shape is not a plate; set it to 0")
-        payload["layers"] = [layers, LAYERED_FORMAT]
-    if planes:   # the whole-body meshes keep the keys they had before the option
+               "h": shape.holes.round(12).tolist(), "mesh": config_key(mesh), "layered": LAYERED_FORMAT}
+    if layers and shape.layered_mesh is None:
+        raise UserError(f"drone.mesh.layers = {layers}: the {shape.dim}D shape is not a plate; set it to 0")
+    if planes:
         from sdexp.sim.mesh.mirror import asymmetric_parts
         bad = asymmetric_parts(shape, planes)
         if bad:
             raise UserError(f"drone.mesh.mirror = {planes}: the design is not symmetric there, its "
                             f"{', '.join(bad)} do not mirror onto themselves")
-        payload["mirror"] = planes
 
     def make() -> dict[str, np.ndarray]:
         if layers:

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
 from sdexp.errors import UserError
 from sdexp.sim.drone import Drone
@@ -27,9 +27,8 @@ from sdexp.sim.physics.integrator import Body, extent
 from sdexp.sensing import Readings, decompose, State
 from sdexp.sim.sensors import add_noise, read_imus
 
-
-def _plain(cfg):
-    return OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
+if TYPE_CHECKING:
+    from sdexp.config import NoiseConfig, SimConfig
 
 
 # Below this many linear elements' work a second thread saves no more than its synchronisation
@@ -48,12 +47,11 @@ class Failure:
 
 
 class Simulator:
-    def __init__(self, drone: Drone, sim_cfg, noise_cfg, seed: int = 0, effects=None):
+    def __init__(self, drone: Drone, sim_cfg: SimConfig, noise_cfg: NoiseConfig, seed: int = 0, effects=None):
         """``effects``: Effect objects or entries; None = the ``sim.effects`` list."""
         self.drone = drone
-        # plain dataclasses: a DictConfig attribute read costs microseconds, every step
-        self.cfg = _plain(sim_cfg)
-        self.noise = _plain(noise_cfg)
+        self.cfg = sim_cfg
+        self.noise = noise_cfg
         self.rng = np.random.default_rng(seed)
         self.effects = build_effects(getattr(self.cfg, "effects", []) if effects is None else effects)
         self.fem, damping = drone.fem, drone.damping

@@ -4,6 +4,8 @@ flight.arena_margin from the box spanned by the task's start and goals, ends the
 reason and time recorded like a blow-up; a hovering flight is not cut. Each cut flight is
 compared with the same flight flown without limits (noise-free, so bitwise the same up to the
 cut), whose crossing is found by hand."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from sdexp.eval.controllers import build, geometry_of
 from sdexp.sim.drone import build_drone
 from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.simulator import Simulator
-from tests.test_cli import make_cfg
+from tests.test_cli import make_config as make_cfg
 
 NO_LIMITS = FlightConfig(max_tilt_deg=None, arena_margin=None)
 
@@ -47,9 +49,7 @@ class Constant:
 
 def quiet(model):
     cfg, drone = model
-    n = cfg.noise.copy()
-    n.enabled = False
-    return Simulator(drone, cfg.sim, n)
+    return Simulator(drone, cfg.sim, replace(cfg.noise, enabled=False))
 
 
 def blocks(drone):
@@ -99,8 +99,7 @@ def test_the_limits_are_validated(rod):
     validate(cfg)
     assert cfg.flight.max_tilt_deg == 90.0 and cfg.flight.arena_margin == 10.0
     for key, bad in (("max_tilt_deg", 0.0), ("max_tilt_deg", 181.0), ("arena_margin", -1.0)):
-        c = cfg.copy()
-        c.flight[key] = bad
+        c = replace(cfg, flight=replace(cfg.flight, **{key: bad}))
         with pytest.raises(UserError, match=f"flight.{key}"):
             validate(c)
 

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from sdexp.control import neural
-from sdexp.control.neural import POLICY_KEYS, NeuralController, Policy, load_or_train_policy, train_policy
+from sdexp.config import NeuralControllerConfig
+from sdexp.control.neural import NeuralController, Policy, load_or_train_policy, train_policy
 from sdexp.control.tasks import Task
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.sensing import State
@@ -30,8 +31,7 @@ def cfg(**kw):
     c = dict(hidden=16, layers=1, iterations=40, batch=16, horizon=15, lr=3e-2, goal_radius=0.3,
              w_att=1.0, w_bend=0.1, w_vel=0.05, w_u=0.01)
     c.update(kw)
-    assert set(c) == set(POLICY_KEYS)
-    return c
+    return NeuralControllerConfig(**c)
 
 
 @pytest.fixture(autouse=True)

@@ -1,5 +1,7 @@
 """fly() and metrics() on the simulated 2D rod with scripted controllers: what the flight
 records, how it ends, and the metrics recomputed by hand from the recorded flight."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -8,7 +10,7 @@ from sdexp.control.rollout import fly, metrics
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.sim.drone import build_drone
 from sdexp.sim.simulator import Simulator
-from tests.test_cli import make_cfg
+from tests.test_cli import make_config as make_cfg
 
 DT = 0.01
 
@@ -21,17 +23,12 @@ def rod(cache_dir):
 
 def simulator(rod, **sim):
     cfg, drone = rod
-    s = cfg.sim.copy()
-    for k, v in sim.items():
-        s[k] = v
-    return Simulator(drone, s, cfg.noise.copy(), seed=3)
+    return Simulator(drone, replace(cfg.sim, **sim), cfg.noise, seed=3)
 
 
 def quiet(rod):
     cfg, drone = rod
-    n = cfg.noise.copy()
-    n.enabled = False
-    return Simulator(drone, cfg.sim, n)
+    return Simulator(drone, cfg.sim, replace(cfg.noise, enabled=False))
 
 
 class Scripted:

@@ -3,7 +3,7 @@ short flights, few windows and a handful of candidates."""
 import pytest
 
 from sdexp.sim.drone import build_drone
-from tests.test_cli import make_cfg
+from tests.test_cli import make_config
 
 SMALL = [
     "drone=leaf", "drone.mesh.edge_length=0.5",   # the bench drone
@@ -18,7 +18,7 @@ SMALL = [
 
 @pytest.fixture(scope="session")
 def small_cfg(cache_dir):
-    return make_cfg(*SMALL, "experiment=discrepancy", f"cache_dir={cache_dir}")
+    return make_config(*SMALL, "experiment=discrepancy", f"cache_dir={cache_dir}")
 
 
 @pytest.fixture(scope="session")

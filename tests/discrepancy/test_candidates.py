@@ -1,5 +1,7 @@
 """One candidate protocol for library and user effects: declarations, physical bounds, the
 history a slow candidate needs, and a user's own effect named from logs."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -73,9 +75,8 @@ def test_windows_replay_several_time_constants_of_the_slowest_lag(leaf):
 
 
 def test_a_users_own_hypothesis_is_named_from_the_logs(tmp_path, small_cfg, leaf):
-    cfg = small_cfg.copy()
     user = {"_target_": "sdexp.discrepancy.bench_effects.RotorTilt", "rotor": 0}
-    cfg.discrepancy.candidates = ["motor_lag", "payload", user]
+    cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy, candidates=["motor_lag", "payload", user]))
     record(cfg, leaf, tmp_path / "logs", [{**user, "angle": 0.2}], seed=21)
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
     assert rep["verdict"] in ("effect", "tie") and rep["effects"][0]["name"] == "rotor_tilt"

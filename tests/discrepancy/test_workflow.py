@@ -2,12 +2,14 @@
 fitted, written as a simulator override that loads, and the held-out gap shrinks; the reduced
 bench reports its metrics."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
 from sdexp.config import SimConfig
+from sdexp.experiment_params import DiscrepancyBenchParams
 from sdexp.discrepancy.bench import run_bench, summarize
 from sdexp.discrepancy.record import record_flights
 from sdexp.discrepancy.workflow import run_workflow
@@ -40,7 +42,7 @@ def test_hidden_payload_is_named_added_and_the_gap_shrinks(tmp_path, small_cfg, 
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
     assert saved["verdict"] == rep["verdict"] and saved["rounds"][0]["ranking"][0]["candidate"] == "payload"
     # the override is a simulator config the simulator loads, with the fitted effect in it
-    sim_cfg = OmegaConf.merge(OmegaConf.structured(SimConfig), OmegaConf.load(rep["sim_fitted"]))
+    sim_cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), OmegaConf.load(rep["sim_fitted"])))
     sim = Simulator(leaf, sim_cfg, small_cfg.noise)
     assert [e.name for e in sim.effects] == ["payload"]
     assert sim.fem.mass.sum() == pytest.approx(1.0 + fitted["params"]["mass"])
@@ -51,8 +53,7 @@ def test_a_push_no_candidate_makes_is_answered_unexplained_where_it_shows(tmp_pa
     # workflow here change the thrust's timing or the body's inertia, never a sideways force
     # (a weak rotor would: it tilts the body, and is named with the residual left, see
     # report["remaining_above_floor"])
-    cfg = small_cfg.copy()
-    cfg.discrepancy.candidates = ["motor_lag", "actuation_delay"]
+    cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy, candidates=["motor_lag", "actuation_delay"]))
     record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [3.0, 0.0, 0.0]}], seed=13)
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
     assert rep["verdict"] == "unexplained" and rep["effects"] == []
@@ -62,8 +63,8 @@ def test_a_push_no_candidate_makes_is_answered_unexplained_where_it_shows(tmp_pa
 
 
 def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg):
-    params = OmegaConf.create({"effects": ["thrust_loss"], "levels": [1], "seeds": 1, "nulls": 1,
-                               "combos": False, "unmodelled": 0})
+    params = DiscrepancyBenchParams(effects=["thrust_loss"], levels=[1], seeds=1, nulls=1, combos=False, unmodelled=0,
+                                    variants=0)
     m = run_bench(small_cfg.drone, small_cfg.sim, small_cfg.noise, small_cfg.discrepancy, params, tmp_path,
                   small_cfg.cache_dir, workers=1)
     assert m["scenarios"] == 2
@@ -124,9 +125,7 @@ def test_the_push_diagnostic_shows_a_wind_push_along_the_wind(tmp_path, small_cf
     """With no candidate for it, a steady wind along +x shows as a push along +x in most windows
     of the per-window diagnostic, and the per-window push removes much of the excess."""
     import pandas as pd
-    cfg = small_cfg.copy()
-    cfg.discrepancy.candidates = ["motor_lag"]
-    cfg.discrepancy.push = True
+    cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy, candidates=["motor_lag"], push=True))
     record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [3.0, 0.0, 0.0]}], seed=13)
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
     table = pd.read_csv(tmp_path / "out" / "push.csv")

@@ -13,7 +13,7 @@ from sdexp.eval.experiments import run_experiment
 from tests.eval.references import reduced_overrides
 from sdexp.sim.mesh.surface import boundary_faces
 from sdexp.sim.physics.quadratic import quadratic_mesh
-from tests.test_cli import make_cfg
+from tests.test_cli import make_cfg, make_config
 
 imageio = pytest.importorskip("imageio.v3")
 meshio = pytest.importorskip("meshio")
@@ -104,7 +104,7 @@ def test_recording_keeps_a_flight_bit_for_bit(cache_dir):
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
 
-    cfg = make_cfg("drone=rod", f"cache_dir={cache_dir}", "sim.threads=1")
+    cfg = make_config("drone=rod", f"cache_dir={cache_dir}", "sim.threads=1")
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     runs = []
     for rec in (None, FrameRecorder(25.0)):
@@ -139,7 +139,7 @@ def test_the_hover_deform_runner_writes_its_animation_and_its_numbers_do_not_cha
     pvd = tmp_path / "on" / "hover_deform_vtu" / "hover_deform.pvd"
     listed = animation.read_pvd(pvd)
     assert len(listed) == 8 and listed[-1][0] == pytest.approx(0.26)
-    cfg = make_cfg(*over)
+    cfg = make_config(*over)
     from sdexp.sim.drone import build_drone
     nv = len(build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element).fem.rest)
     for _, name in listed:

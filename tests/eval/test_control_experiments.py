@@ -9,7 +9,7 @@ import pytest
 
 from sdexp.eval.experiments import run_experiment
 from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
-from tests.test_cli import make_cfg
+from tests.test_cli import make_cfg, make_config
 
 
 def run(tmp_path, cache_dir, experiment):
@@ -67,7 +67,7 @@ def test_obstacle_runs_shrunk_on_the_star(tmp_path, cache_dir):
 
 def test_the_obstacle_opening_is_read_from_the_boxes():
     from sdexp.eval.obstacle import _gap_heights, _gap_width, folding_wings, touching
-    boxes = make_cfg("experiment=obstacle").sim.obstacles
+    boxes = make_config("experiment=obstacle").sim.obstacles
     assert _gap_width(boxes) == pytest.approx(2.8)            # narrower than the star's 3.6 m
     assert _gap_heights(boxes) == (-2.0, 12.0)                # above the bottom block, below the tops
     assert touching(np.array([[3.3, 0.0, 2.0]]), boxes) and not touching(np.array([[3.3, 0.0, 0.0]]), boxes)
@@ -83,7 +83,7 @@ def test_the_fold_limit_is_inverse_in_the_modulus_while_the_bend_is_small(cache_
     folds = []
     for modulus in (192000.0, 384000.0):   # 64x and 128x the star's: small bends (quadratic elements
                                            # bend the converged amount, 4x what linear ones did)
-        cfg = make_cfg("experiment=obstacle", f"cache_dir={cache_dir}", f"drone.youngs_modulus={modulus}")
+        cfg = make_config("experiment=obstacle", f"cache_dir={cache_dir}", f"drone.youngs_modulus={modulus}")
         drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
         folds.append(fold_limit(drone, cfg.sim, folding_wings(drone.layout.r_hat), seconds=2.0))
     assert 1.0 < folds[0] < 10.0                      # a few degrees: the linear regime

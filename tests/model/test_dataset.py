@@ -8,6 +8,7 @@ import pytest
 from hydra import compose, initialize_config_module
 
 from sdexp.errors import UserError
+from sdexp.eval.experiments import typed
 from sdexp.model import generate
 from sdexp.model.dataset import KEYS, DATA_FORMAT, Dataset, _write_npz, dataset_key, dataset_spec, load_dataset
 
@@ -18,7 +19,8 @@ SMALL = ["drone=rod", "data=paper", "data.samples=600", "data.hold_seconds=0.5",
 
 def make_cfg(cache_dir, *overrides):
     with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=[*SMALL, f"cache_dir={cache_dir}", *overrides])
+        cfg = compose(config_name="config", overrides=[*SMALL, f"cache_dir={cache_dir}", *overrides])
+    return typed(cfg)
 
 
 def final_path(cfg) -> Path:
@@ -270,7 +272,7 @@ def test_obstacles_are_scenery_not_part_of_the_data(reference):
     cfg, _ = reference
     boxed = make_cfg(cfg.cache_dir, "sim.obstacles=[{min:[3,-6],max:[4,6]}]")
     assert dataset_key(dataset_spec(boxed, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))
-    assert dataset_spec(boxed, CHUNK)["sim"]["obstacles"] == []
+    assert dataset_spec(boxed, CHUNK)["sim"].obstacles == []
 
 
 def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkeypatch):
@@ -309,11 +311,13 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
         generate.generate_chunk(dataset_spec(cfg, CHUNK), 0, 10)
 
 
-def test_a_drone_meshed_whole_keeps_the_data_key_it_had_before_the_mirror_option(tmp_path):
-    """drone.mesh.mirror = [] (the default) is left out of the key, so data cached before the
-    option are still found; a mirrored mesh is another body and gets another key."""
+def test_the_data_key_is_the_configs_key_fields(tmp_path):
+    """A mirrored mesh is another body and gets another key; thread and worker counts are not
+    part of it (sdexp.config.NOT_KEY), nor is the split."""
     cfg = make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[]")
     spec = dataset_spec(cfg, CHUNK)
-    assert "mirror" in cfg.drone.mesh and "mirror" not in spec["drone"]["mesh"]
+    for other in ("sim.threads=2", "data.workers=3", "data.validation_fraction=0.3"):
+        assert dataset_key(dataset_spec(make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[]", other),
+                                        CHUNK)) == dataset_key(spec), other
     mirrored = dataset_spec(make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[x,z]"), CHUNK)
     assert dataset_key(mirrored) != dataset_key(spec)

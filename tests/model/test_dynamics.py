@@ -8,7 +8,8 @@ import torch
 
 from sdexp.model.dynamics import LearnedDynamics, state_sizes
 from sdexp.model.networks import ResidualMLP
-from sdexp.model.training import DECOMPOSED, design
+from sdexp.model.specs import DECOMPOSED
+from sdexp.model.training import design
 from tests.model.test_networks import synthetic_dataset
 from tests.eval.references import SHRUNK  # one shrunk model for every experiment test
 

@@ -10,7 +10,8 @@ from sdexp.errors import UserError
 from sdexp.model import training
 from sdexp.model.dataset import Dataset
 from sdexp.model.networks import ResidualMLP
-from sdexp.model.training import DECOMPOSED, UNDECOMPOSED, design, train_models
+from sdexp.model.specs import DECOMPOSED, UNDECOMPOSED
+from sdexp.model.training import design, train_models
 
 
 class SyntheticDataset(Dataset):
@@ -50,7 +51,7 @@ def synthetic_dataset(n=4000, n_s=3, n_e=3, dim=3, m=4, episode_len=200, seed=0,
 def model_cfg(**kw):
     base = dict(hidden=32, blocks=2, epochs=3, batch_size=128, lr=3e-3, lr_step=2, threads=1)
     base.update(kw)
-    return OmegaConf.merge(OmegaConf.structured(ModelConfig), base)
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(ModelConfig), base))
 
 
 def test_shapes_and_architecture():
@@ -186,7 +187,7 @@ def test_parallel_training_gives_the_same_networks():
 
 
 def test_the_best_validation_epoch_is_kept_or_the_last():
-    from types import SimpleNamespace
+    from dataclasses import replace
 
     data = synthetic_dataset(n=1500)
     train_idx, val_idx = data.split(0.2, 0)
@@ -195,7 +196,7 @@ def test_the_best_validation_epoch_is_kept_or_the_last():
     cfg = model_cfg(epochs=6, lr=3e-2)   # a large step: the validation loss is not monotone
     assert cfg.keep_best is True   # the default
     for keep in (True, False):
-        plain = SimpleNamespace(**{**{k: cfg[k] for k in (*training.MODEL_KEYS, "threads")}, "keep_best": keep})
+        plain = replace(cfg, keep_best=keep)
         net, hist, _ = training.train_network(X_tr, Y_tr, X_va, Y_va, base, plain, 0, progress=False)
         chosen = hist[hist["selected"]]
         assert len(chosen) == 1
@@ -230,14 +231,12 @@ def test_horizon_targets_stay_inside_one_hold_of_one_episode():
     assert X2[:, 0].astype(int).tolist() == [1, 2]
 
 
-def test_horizon_is_in_the_model_key_only_when_not_one():
+def test_the_model_key_is_the_configs_key_fields():
+    """Every field that trains other nets is in the key; the thread count is not."""
     data = synthetic_dataset(n=400, episode_len=100)
     k1 = training.models_key(data, model_cfg(), 0, 0.2, DECOMPOSED)
-    k3 = training.models_key(data, model_cfg(horizon=3), 0, 0.2, DECOMPOSED)
-    assert k1 != k3
-    cfg = model_cfg()
-    legacy = {k: cfg[k] for k in training.MODEL_KEYS if k != "horizon"}
-    assert k1 == training.models_key(data, OmegaConf.create({**legacy, "horizon": 1}), 0, 0.2, DECOMPOSED)
+    assert k1 != training.models_key(data, model_cfg(horizon=3), 0, 0.2, DECOMPOSED)
+    assert k1 == training.models_key(data, model_cfg(threads=2), 0, 0.2, DECOMPOSED)
 
 
 def test_linear_nets_fit_a_linear_law_and_key_only_when_asked():

@@ -4,6 +4,7 @@ Richardson recovers a known limit."""
 import numpy as np
 import pytest
 
+from sdexp import conf
 from sdexp.eval.convergence import richardson, static_displacement, stiffness
 from sdexp.sim.physics.fem import build_fem, elastic_forces
 from sdexp.sim.physics.quadratic import quadratic_mesh
@@ -57,14 +58,13 @@ def test_the_load_is_the_same_on_every_mesh_of_a_drone(tmp_path):
     """The yardstick's thrusts come from the design's rotor normals: on the patch normals, the
     octopus's head rotor carried 1.09 N on one mesh and 0 N on the next (hover_thrust then
     traded it against a horizontal force the tilted patches made)."""
-    from omegaconf import OmegaConf
+    from dataclasses import replace
 
-    from sdexp.eval.bench_sim import load_drone_cfg
     from sdexp.eval.convergence import load_thrusts
     from sdexp.sim.drone import build_drone
 
-    cfg = load_drone_cfg("octopus")
-    thrusts = [load_thrusts(build_drone(OmegaConf.merge(cfg, {"mesh": {"edge_length": e, "layers": 1}}),
+    cfg = conf.drone("octopus")
+    thrusts = [load_thrusts(build_drone(replace(cfg, mesh=replace(cfg.mesh, edge_length=e, layers=1)),
                                         str(tmp_path), "quadratic"), 9.81, 2.0) for e in (0.5, 0.4)]
     np.testing.assert_allclose(thrusts[0], thrusts[1], rtol=0.01)
     assert thrusts[0][0] > 0.5   # the head rotor lifts its share

@@ -121,9 +121,9 @@ def test_stiff_limit_follows_rigid_body_motion():
 
 
 def test_compiled_kernel_matches_the_numba_reference(block):
-    from sdexp.sim.physics.fem import corotated_cfunc_3d, corotated_kernel_3d
+    from sdexp.sim.physics.fem import corotated_cfunc_3d, kernels
 
-    kernel = corotated_kernel_3d()
+    kernel = kernels().forces_3d
     assert kernel is not corotated_cfunc_3d.ctypes, "the C kernel did not build"
     rng = np.random.default_rng(5)
     x = block.rest @ matrix_from_euler(np.array([0.4, 1.0, -0.3])).T + 0.05 * rng.standard_normal(block.rest.shape)

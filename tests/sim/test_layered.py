@@ -1,12 +1,13 @@
 """Plates meshed by extrusion (drone.mesh.layers >= 1): valid, conforming, exact in thickness,
 exactly symmetric when mirrored, and as accurate as a converged mesh with quadratic elements."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
-from sdexp.config import DroneConfig
-from sdexp.eval.bench_sim import load_drone_cfg
-from sdexp.config import drone_key
+from sdexp import conf
+from sdexp.cache import config_key
+from sdexp.config import MeshConfig
 from sdexp.sim.drone import make_shape, mesh_shape
 from sdexp.sim.mesh.surface import boundary_faces, face_normals
 
@@ -14,7 +15,8 @@ from tests.sim.test_mirror import mirror_gap
 
 
 def layered(name, tmp_path, **mesh):
-    cfg = OmegaConf.merge(load_drone_cfg(name), {"mesh": mesh})
+    cfg = conf.drone(name)
+    cfg = replace(cfg, mesh=replace(cfg.mesh, **mesh))
     return mesh_shape(make_shape(cfg), cfg.mesh, str(tmp_path))
 
 
@@ -53,13 +55,9 @@ def test_mirrored_extrusion_is_exactly_symmetric_and_follows_the_taper(tmp_path)
 
 
 def test_layers_key_and_bad_input(tmp_path):
-    cfg = OmegaConf.structured(DroneConfig(name="x", shape="flower", size=[1.0, 0.1, 1.0], youngs_modulus=1.0,
-                                           num_rotors=1, num_sensors=0))
-    plain = OmegaConf.to_container(cfg)
-    assert "layers" not in drone_key(plain)["mesh"]          # fTetWild drones keep their cache keys
-    plain["mesh"]["layers"] = 2
-    assert drone_key(plain)["mesh"]["layers"] == 2
+    assert config_key(MeshConfig(layers=2))["layers"] == 2 != config_key(MeshConfig())["layers"]
     from sdexp.errors import UserError
-    rod = OmegaConf.merge(load_drone_cfg("rod"), {"mesh": {"layers": 1}})
+    rod = conf.drone("rod")
+    rod = replace(rod, mesh=replace(rod.mesh, layers=1))
     with pytest.raises(UserError, match="drone.mesh.layers"):
         mesh_shape(make_shape(rod), rod.mesh, str(tmp_path))

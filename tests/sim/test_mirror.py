@@ -3,7 +3,6 @@ import itertools
 
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from sdexp.config import NoiseConfig
 from sdexp.errors import UserError
@@ -15,7 +14,7 @@ from sdexp.sensing import decompose
 from sdexp.sim.simulator import Simulator
 from sdexp.sim.rigid.statics import outer_rotors
 from tests.sim.test_shapes3d import surface_volume
-from tests.test_cli import make_cfg
+from tests.test_cli import make_config as make_cfg
 
 
 def volumes(points, tets):
@@ -98,7 +97,7 @@ def test_a_mirrored_star_folds_both_wings_alike_and_does_not_yaw(star):
     null = deformation_patterns(drone)
     pattern = null @ (null.T @ outer_rotors(drone, along_z=True).astype(float))
     u = rest_hover_thrust(drone, float(cfg.sim.gravity)) + 4.0 * pattern / np.abs(pattern).max()
-    sim = Simulator(drone, cfg.sim, OmegaConf.structured(NoiseConfig(enabled=False)), seed=0)
+    sim = Simulator(drone, cfg.sim, NoiseConfig(enabled=False), seed=0)
     sim.reset()
     for _ in range(100):
         r = sim.step(u)

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from sdexp import conf
 from sdexp.sim.mesh.placement import tree_imus
@@ -142,8 +141,7 @@ def test_tet_mesh_at_the_configured_resolution(shapes, name):
 
     # the drone builder's binding on the default (quadratic) elements: mid-edge nodes count
     from sdexp.sim.drone import assemble_drone
-    from sdexp.eval.bench_sim import load_drone_cfg
-    built = assemble_drone(load_drone_cfg(name), s, points, tets, "quadratic")
+    built = assemble_drone(conf.drone(name), s, points, tets, "quadratic")
     assert np.diff(built.rotors.vert_ptr).min() >= 4
     assert (built.imus.w > 0).sum(axis=1).min() >= 4
 

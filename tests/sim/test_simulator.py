@@ -9,11 +9,12 @@ from tests.sim.test_sensors import beam_drone_2d, plate_drone
 
 
 def sim_cfg(**kw):
-    return OmegaConf.merge(OmegaConf.structured(SimConfig), kw)
+    """A SimConfig, the values typed as the schema types them (a YAML's 0 is 0.0)."""
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), kw))
 
 
 def noise_cfg(**kw):
-    return OmegaConf.merge(OmegaConf.structured(NoiseConfig), kw)
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(NoiseConfig), kw))
 
 
 QUIET = dict(enabled=False)

@@ -37,7 +37,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
-from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from sdexp.errors import UserError
 
@@ -652,23 +651,17 @@ def resolve_effect(entry, where: str) -> tuple[type, dict, dict]:
 
 
 def check_config_effects(entries) -> None:
-    """sim.effects as a user wrote them: known names, known parameters, physical ranges."""
-    if isinstance(entries, (DictConfig, ListConfig)):
-        entries = OmegaConf.to_container(entries, resolve=True)
+    """sim.effects as a user wrote them (plain dicts): known names, known parameters, physical ranges."""
     build_effects([dict(e) if isinstance(e, dict) else e for e in entries or []])
 
 
 def build_effects(entries) -> list[Effect]:
-    """Objects from ``sim.effects`` entries (dicts, DictConfigs or Effect instances)."""
-    if isinstance(entries, (DictConfig, ListConfig)):
-        entries = OmegaConf.to_container(entries, resolve=True)
+    """Objects from ``sim.effects`` entries (dicts or Effect instances)."""
     out = []
     for k, e in enumerate(entries or []):
         if isinstance(e, Effect):
             out.append(e)
             continue
-        if isinstance(e, DictConfig):
-            e = OmegaConf.to_container(e, resolve=True)
         if not isinstance(e, dict):
             raise UserError(f"sim.effects[{k}] = {e!r}: expected {{name: ..., params}} or {{_target_: ...}}")
         cls, e, _ = resolve_effect(e, f"sim.effects[{k}]")

@@ -274,13 +274,21 @@ def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf):
     return inverted
 
 
-def corotated_kernel_3d():
-    """A ctypes function with the C signature of kernels.c's corotated_forces_3d: the compiled
-    one, or the numba cfunc where the C library could not be built (sdexp.sim.physics.native)."""
+@dataclass(frozen=True)
+class Kernels:
+    """The kernels that run: ``library``, the compiled kernels.c (sdexp.sim.physics.native) whose
+    ``advance`` steps a whole Body, or None where it cannot be built; ``forces_3d``, the linear 3D
+    force kernel with kernels.c's C signature (the compiled one, or else the numba cfunc) for
+    the numba step and for elastic_forces."""
+    library: object
+    forces_3d: object
+
+
+def kernels() -> Kernels:
+    """The one place that picks compiled or numba kernels (the library is built and loaded once
+    per process, and logs which it is)."""
     lib = library()
-    if lib is None:
-        return corotated_cfunc_3d.ctypes
-    return lib.corotated_forces_3d
+    return Kernels(lib, corotated_cfunc_3d.ctypes if lib is None else lib.corotated_forces_3d)
 
 
 def elastic_forces(model: FemModel, x: np.ndarray, q: np.ndarray | None = None,
@@ -292,7 +300,7 @@ def elastic_forces(model: FemModel, x: np.ndarray, q: np.ndarray | None = None,
     fbuf = np.zeros((1,) + x.shape)
     if model.dim == 3:
         q = rest_quaternions(model.n_rotations) if q is None else q
-    element_forces(kernel or corotated_kernel_3d(), x, model.elems, model.Bm, model.vol,
+    element_forces(kernel or kernels().forces_3d, x, model.elems, model.Bm, model.vol,
                    model.mu, model.lam, q if model.dim == 3 else np.zeros((0, 4)), fbuf)
     return fbuf[0]
 

@@ -10,8 +10,8 @@ import ctypes
 import numba as nb
 import numpy as np
 
-from sdexp.sim.physics.fem import FemModel, corotated_kernel_3d, element_forces, rest_quaternions
-from sdexp.sim.physics.native import Step, blocked, library
+from sdexp.sim.physics.fem import FemModel, element_forces, kernels, rest_quaternions
+from sdexp.sim.physics.native import Step, blocked
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
@@ -254,7 +254,8 @@ class Body:
         self.boxes_max = np.zeros((0, d)) if boxes_max is None else np.asarray(boxes_max, float).reshape(-1, d)
         self.friction = friction
         self.thrust = np.zeros(m)
-        self._lib = library() if compiled else None
+        self._kernels = kernels()
+        self._lib = self._kernels.library if compiled else None   # compiled=False: the numba reference step
         self._elements = (fem.elems, fem.Bm, fem.vol)
         if d == 3 and self._lib is not None:
             self.q, self._elements = self._blocked()
@@ -310,7 +311,7 @@ class Body:
         self.thrust[:] = 0.0 if thrust is None else thrust
         if self._step is None:
             nb.set_num_threads(min(self.fbuf.shape[0], nb.config.NUMBA_NUM_THREADS))
-            return advance(corotated_kernel_3d(), n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
+            return advance(self._kernels.forces_3d, n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
                            f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity,
                            self.ground, self.boxes_min, self.boxes_max, self.friction, *self.rotors,
                            self.thrust, self.ext, self.dirs, self.fext)

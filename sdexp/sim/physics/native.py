@@ -4,8 +4,8 @@ written to a temporary name and renamed, so a killed build leaves nothing half-w
 checked against the digest recorded at build time before it is loaded (a damaged one is rebuilt).
 
 Where no compiler works (``library()`` is None), the numba references (same arithmetic, about
-3x slower) run instead and a warning says so: sdexp.sim.physics.fem.corotated_kernel_3d and the
-integrator's Body choose by that; otherwise an INFO line names the compiled library. The two
+3x slower) run instead and a warning says so: sdexp.sim.physics.fem.kernels, the one place that
+chooses, and the integrator's Body go by that; otherwise an INFO line names the compiled library. The two
 agree to 1e-10 (tests/sim/test_fem.py: test_compiled_step_matches_the_numba_reference).
 """
 from __future__ import annotations

@@ -8,8 +8,9 @@ bends under a fixed load at each mesh resolution: coarse linear tets are too sti
 shape-holding hover is the centre of the data recipe's draw with ``data.hover: shape``."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
-from omegaconf import OmegaConf
 
 from sdexp.config import NoiseConfig
 from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body
@@ -31,8 +32,7 @@ def outer_rotors(drone, along_z: bool = False) -> np.ndarray:
 
 def hold(drone, sim_cfg, u: np.ndarray, seconds: float) -> np.ndarray:
     """Bend angles s (rad) after holding thrust ``u`` for ``seconds`` from rest, noise-free."""
-    sim = Simulator(drone, OmegaConf.merge(sim_cfg, {"obstacles": []}),
-                    OmegaConf.structured(NoiseConfig(enabled=False)), seed=0)
+    sim = Simulator(drone, replace(sim_cfg, obstacles=[]), NoiseConfig(enabled=False), seed=0)
     r = sim.reset()
     for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
         r = sim.step(u)

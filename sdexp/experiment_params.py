@@ -1,0 +1,266 @@
+"""The schema of ``experiment.params``: one dataclass per experiment, with its defaults, types
+and allowed ranges. Each conf/experiment/<name>.yaml places its dataclass at experiment.params
+(``- /experiment_params@experiment.params: <name>`` in its defaults list), so Hydra composes the
+defaults into the config, refuses a key the dataclass lacks or a value of the wrong type, and
+``OmegaConf.to_object`` at the runner boundary (sdexp.eval.run) hands the runner an instance,
+whose ``__post_init__`` checks the ranges.
+
+A field's ``metadata`` says what is allowed beyond its type: ``range`` (a predicate and its
+text, applied to every number of a list or mapping) and ``group`` (every value must name an
+option of that config group, e.g. a drone: checked where the configs are known,
+sdexp.eval.run).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Optional
+
+from hydra.core.config_store import ConfigStore
+
+from sdexp.config import ELEMENTS
+from sdexp.errors import UserError
+
+PREFIX = "experiment.params."
+
+
+def _param(default, ok: Callable[[Any], bool] | None = None, allowed: str = "", **metadata) -> Any:
+    """A field with ``default`` (a list or mapping is copied per instance) and its range."""
+    if ok is not None:
+        metadata["range"] = (ok, allowed)
+    if isinstance(default, (list, dict)) or dataclasses.is_dataclass(default):
+        return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+def positive(default):
+    return _param(default, lambda v: v > 0, "> 0")
+
+
+def nonnegative(default):
+    return _param(default, lambda v: v >= 0, ">= 0")
+
+
+def drone_choice(default):
+    """A drone name, or a list of them (null: every drone, where the runner says so)."""
+    return _param(default, group="drone")
+
+
+def _leaves(value) -> list:
+    """The numbers of a param: itself, a list's items, or (a mapping of lists, per element type
+    or dimension) all of theirs."""
+    if isinstance(value, dict):
+        return [v for sub in value.values() for v in _leaves(sub)]
+    return list(value) if isinstance(value, list) else [value]
+
+
+@dataclass
+class Params:
+    """What every experiment's params share: range checks on construction (``to_object``)."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if "range" not in f.metadata or value is None:
+                continue
+            ok, allowed = f.metadata["range"]
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and ok(v)
+                       for v in _leaves(value)):
+                raise UserError(f"{PREFIX}{f.name} = {value!r} is out of range: allowed {allowed}"
+                                + (" each" if isinstance(value, (list, dict)) else ""))
+        self.check()
+
+    def check(self) -> None:
+        """Rules between fields (none by default)."""
+
+
+# ------------------------------------------------------------------ the paper's experiments
+
+@dataclass
+class SotaParams(Params):
+    seconds: float = positive(20.0)
+    start: List[float] = _param([0.0, 0.0, 0.0])
+    target: List[float] = _param([3.0, 3.0, 3.0])
+    controllers: List[str] = _param(["ours", "rigid_lqr", "geometry_lqr", "neural"])
+    animate: List[str] = _param(["ours"])   # controllers whose flight is also drawn: sota_<name>.mp4 ([]: none)
+    paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
+
+    def check(self) -> None:
+        stray = [c for c in self.animate if c not in self.controllers]
+        if stray:
+            raise UserError(f"{PREFIX}animate = {self.animate!r}: {stray[0]!r} is not flown: allowed a list of the "
+                            f"controllers in {PREFIX}controllers ({', '.join(self.controllers) or 'none'})")
+
+
+@dataclass
+class NsweepParams(Params):
+    seconds: float = positive(20.0)
+    start: List[float] = _param([0.0, 0.0, 0.0])
+    target: List[float] = _param([3.0, 3.0, 3.0])
+    n_values: List[int] = _param([1, 2, 5, 10, 20, 30, 40, 50, 100], lambda v: v > 0, "> 0")
+
+
+@dataclass
+class AblationFixedPointParams(Params):
+    seconds: float = positive(10.0)
+    distance: float = positive(2.0)
+    noise_levels: List[float] = _param([0.0, 0.1, 0.2, 0.3, 0.4, 0.8], lambda v: v >= 0, ">= 0")
+    trials: int = positive(4096)        # random (s, u) tried before the gradient descent
+    descent_steps: int = positive(2000)
+
+
+@dataclass
+class HoverDeformParams(Params):
+    angle_deg: float = 15.0             # petal raise (the paper does not state it)
+    settle_seconds: float = nonnegative(2.0)   # after release; the paper measures "ever since the initial drop"
+    ramp_seconds: float = positive(2.0)
+    hold_seconds: float = nonnegative(3.0)
+    animate: bool = True                # also hover_deform.mp4 (the deforming drone)
+    paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
+
+
+@dataclass
+class ObstacleParams(Params):
+    seconds: float = positive(15.0)
+    velocity: List[float] = _param([0.4, 0.2, 0.0])   # m/s, the goal position moves with it
+    fold_deg: float = 75.0              # the paper's star raised its wings by over 73 deg
+    fold_start: float = nonnegative(1.0)
+    fold_seconds: float = positive(2.0)
+    animate: bool = True                # also obstacle.mp4 (the drone and the blocks)
+    paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
+
+
+@dataclass
+class ModelTestParams(Params):
+    rollout_seconds: float = positive(70.0)   # test flight length; simulated when no held-out episode is this long
+    relinearize_every: int = positive(5)      # control steps between Jacobians (5 = 20 Hz)
+    horizon_seconds: float = positive(1.0)    # the short-horizon rollouts restart from the truth this often
+    plot_seconds: float = positive(5.0)       # window of the acceleration overlay
+    test_seed_offset: int = nonnegative(10000)  # the test flight's seed is seed + this (unseen thrust draws)
+    flight_attempts: int = positive(5)        # a flight the simulator fails is retried with the next seed; the longest is kept
+
+
+@dataclass
+class AblationDecompositionParams(Params):
+    raw_hidden: Optional[int] = positive(None)   # width of the undecomposed network; null = model.hidden
+
+
+@dataclass
+class BenchControlParams(Params):
+    samples: int = positive(200)
+
+
+# ------------------------------------------------------------------ the simulator's experiments
+
+@dataclass
+class BeamParams:
+    """validate_fem's cantilever (sdexp.eval.validate_fem.Beam adds the beam theory)."""
+    length: float = 1.5
+    thickness: float = 0.225     # the flower's plate thickness
+    width: float = 0.3           # 3D only
+    youngs_modulus: float = 6000.0
+    poisson_ratio: float = 0.3
+    sag: float = 0.01            # Euler-Bernoulli static tip deflection / length (small: linear)
+
+
+@dataclass
+class ValidateFemParams(Params):
+    layers: Dict[str, Dict[str, List[int]]] = _param(   # elements through the thickness, per element type and dimension
+        {"linear": {"2d": [1, 2, 4, 8], "3d": [1, 2, 3, 4, 6]}, "quadratic": {"2d": [1, 2, 4], "3d": [1, 2, 3]}},
+        lambda v: v > 0, "> 0")
+    drone_edge_length: Optional[float] = positive(0.25)   # the flower's default mesh.edge_length
+    beam: BeamParams = _param(BeamParams())
+    drones: Optional[List[str]] = drone_choice(None)   # every drone (null) or a list: default mesh vs the converged body
+    refine: List[float] = _param([1.5, 2.0, 3.0], lambda v: v > 0, "> 0")   # the converged reference: meshes this much finer
+    bend_load: float = nonnegative(2.0)          # N on each outer rotor, over hover thrust
+
+
+@dataclass
+class BenchSimParams(Params):
+    drones: Optional[List[str]] = drone_choice(None)   # null = all twelve
+    elements: List[str] = _param(list(ELEMENTS))
+    seconds: float = positive(3.0)               # simulated seconds per drone
+    scaling_drone: Optional[str] = drone_choice("flower")   # null = no refinement series
+    scaling_edges: Dict[str, List[float]] = _param(   # mesh.edge_length of the series, per element type
+        {"linear": [0.35, 0.25, 0.15, 0.1, 0.07],      # about 1.3k, 2k, 5k, 12k and 45k tets
+         "quadratic": [0.6, 0.5, 0.35, 0.25, 0.15]}, lambda v: v > 0, "> 0")
+    scaling_seconds: float = positive(1.0)
+    resolution_factors: List[float] = _param([1.0, 1.4, 2.0])  # every drone's quadratic mesh at edge_length x these:
+                                  # accuracy and substeps (no timing), the evidence behind each default resolution
+    bend_load: float = nonnegative(2.0)   # N: the outer rotors' push (no net lift or tilting torque) of the accuracy load
+    refine: List[float] = _param([1.5, 2.0, 3.0], lambda v: v > 0, "> 0")   # the converged reference: quadratic meshes at edge_length / these
+
+    def check(self) -> None:
+        if not set(self.elements) <= set(ELEMENTS):
+            raise UserError(f"{PREFIX}elements = {self.elements!r}: allowed a list of {', '.join(ELEMENTS)}")
+
+
+@dataclass
+class GalleryParams(Params):
+    drones: Optional[List[str]] = drone_choice(None)   # null = all twelve
+
+
+@dataclass
+class BenchSweepParams(Params):
+    experiment: str = _param("ablation_fixed_point", group="experiment")   # the swept experiment: the rod's cold run is about a minute
+    seeds: int = nonnegative(5)
+    jobs: List[int] = _param([1, 2], lambda v: v > 0, "> 0")   # jobs side by side; the first is the baseline of the speed-up
+    overrides: List[str] = _param([])   # extra overrides for every job, e.g. ["drone=rod"]
+
+
+# ------------------------------------------------------------------ the discrepancy workflow, sweeps
+
+@dataclass
+class RecordParams(Params):
+    """None: the flights are discrepancy.record's."""
+
+
+@dataclass
+class DiscrepancyParams(Params):
+    """None: the workflow's settings are the discrepancy group's."""
+
+
+@dataclass
+class DiscrepancyBenchParams(Params):
+    effects: Optional[List[str]] = None    # null = the whole library
+    levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (sdexp.discrepancy.bench.STRENGTHS)
+    seeds: int = nonnegative(2)            # per effect and strength
+    nulls: int = nonnegative(20)
+    combos: bool = True
+    variants: int = nonnegative(1)         # per seed: every outside-the-library effect with a fair library
+                                           # answer (gusty wind at two strengths, per-rotor lags, a hanging weight)
+    unmodelled: int = nonnegative(1)       # per seed: every outside-the-library effect without one (six kinds,
+                                           # sdexp.discrepancy.bench_effects): the honest answer is unexplained
+    workers: int = positive(2)
+    rescore: bool = False                  # true: recompute the gap columns of an earlier run in the same folder
+    scenario_dir: Optional[str] = None     # where each scenario's logs and reports go; null = <run dir>/scenarios
+
+
+@dataclass
+class ReportParams(Params):
+    sweep_dir: Optional[str] = "${sweep_dir}"   # the sweep folder to aggregate (required)
+    confidence: float = _param(0.95, lambda v: 0 < v < 1, "in (0, 1)")   # of the two-sided Student-t interval
+
+
+# experiment name (its conf/experiment/<name>.yaml) -> the schema of its params
+PARAMS: dict[str, type[Params]] = {
+    "ablation_decomposition": AblationDecompositionParams, "ablation_fixed_point": AblationFixedPointParams,
+    "bench_control": BenchControlParams, "bench_sim": BenchSimParams, "bench_sweep": BenchSweepParams,
+    "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "gallery": GalleryParams,
+    "hover_deform": HoverDeformParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
+    "obstacle": ObstacleParams, "record": RecordParams, "report": ReportParams, "sota": SotaParams,
+    "validate_fem": ValidateFemParams,
+}
+GROUP = "experiment_params"
+
+
+def names(params_cls: type) -> list[str]:
+    return sorted(f.name for f in dataclasses.fields(params_cls))
+
+
+def register() -> None:
+    cs = ConfigStore.instance()
+    for name, cls in PARAMS.items():
+        cs.store(group=GROUP, name=name, node=cls)

@@ -1,0 +1,44 @@
+"""The skeleton every experiment's runner is handed: the typed config (converted once, at the
+runner boundary, sdexp.eval.experiments.run_experiment), the experiment's params (its dataclass
+in sdexp.experiment_params), the run folder, and where its tables and figures go.
+
+A runner is ``run(run: Run) -> dict`` of metrics, named by ``experiment._target_`` in its
+conf/experiment/<name>.yaml; optional beside it in its module: ``check(run)`` (its own input,
+before anything is written) and ``summary(params, metrics) -> str`` (what the run prints last).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sdexp.config import Config
+
+
+@dataclass
+class Run:
+    cfg: Config       # the whole config, typed: cfg.drone, cfg.sim, ... are dataclasses
+    out_dir: Path     # the run folder: tables, figures, metrics.json, config.yaml, cli.log
+
+    @property
+    def params(self) -> Any:
+        """The experiment's params (its sdexp.experiment_params dataclass)."""
+        return self.cfg.experiment.params
+
+    def path(self, name: str) -> Path:
+        """A file of the run folder."""
+        return self.out_dir / name
+
+    def table(self, frame, name: str, **to_csv) -> Path:
+        """``<name>.csv`` in the run folder, without the frame's index."""
+        path = self.path(f"{name}.csv")
+        frame.to_csv(path, index=False, **to_csv)
+        return path
+
+    def figure(self, fig, name: str, dpi: int = 120) -> Path:
+        """``<name>.png`` in the run folder; the figure is closed."""
+        from sdexp.figures import pyplot
+        path = self.path(f"{name}.png")
+        fig.savefig(path, dpi=dpi)
+        pyplot().close(fig)
+        return path
