@@ -124,7 +124,8 @@ class Predictor:
         """measured - predicted (W, horizon, C) with ``effects`` (entries or Effect objects) in
         the simulator; ``before(k)`` runs before window k of ``w`` (per-window parameters)."""
         from sdexp.sim.simulator import Simulator
-        sim = Simulator(self.drone, self.sim_cfg, self.noise, seed=0, effects=self.base + list(effects))
+        # random effects (gusts) at their expectation: no prediction knows a flight's draws
+        sim = Simulator(self.drone, self.sim_cfg, self.noise, seed=0, effects=self.base + list(effects), draws=False)
         out = np.empty_like(w.measured)
         k = 0
         for f, s in zip(w.flights, w.starts):

@@ -27,7 +27,7 @@ import pandas as pd
 import yaml
 
 from sdexp.cache import atomic_write, cached_arrays, config_key, key_of
-from sdexp.discrepancy import push
+from sdexp.discrepancy import gusts, push
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
 from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
 from sdexp.discrepancy.localize import (channel_excess, heatmap, localize, noise_floor, unexplained_cell,
@@ -217,9 +217,19 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         verdict = "unexplained" if hot is not None else "none"
 
     # where a push still acts, window by window, with the named effects in (a diagnostic)
-    push_summary = None
+    push_summary, gust_stats = None, None
+    wind = next((f for f in accepted if f.name == "wind"), None)
+    r_left = pred.residual(w_all, base) if dcfg.push or wind is not None else None
+    if wind is not None:
+        # a named wind: do the windows ask for a slowly varying one? then the fit gets its gusts
+        entry = wind.effects[0]
+        dev, var = gusts.deviations(pred, w_all, sigma, base, entry, r_left)
+        gust_stats = gusts.statistics(dev, var, w_all.flight_of, held_ids, dcfg.stride, dcfg.alpha)
+        if gust_stats["gusty"] and gust_stats["gust_time"]:
+            entry.update(gust_std=gust_stats["gust_std"], gust_time=gust_stats["gust_time"])
+            wind.params.update(gust_std=gust_stats["gust_std"], gust_time=gust_stats["gust_time"])
+        log(f"discrepancy: wind gusts {gust_stats}")
     if dcfg.push:
-        r_left = pred.residual(w_all, base)
         pushes = push.estimate(pred, w_all, sigma, base, r_left)
         atomic_write(out_dir / "push.csv", lambda tmp: pushes.to_csv(tmp, index=False))
         push_summary = push.summary(pushes, trimmed(floor_w), drone.dim)
@@ -257,6 +267,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
         "remaining_above_floor": _jsonable(remaining_cell),
         "push": _jsonable(push_summary),
+        "gusts": _jsonable(gust_stats),
         # the share of the held-out gap over the floor that the named effects close
         "explained_share": float(min(1.0, 1 - gap_after / gap_before)) if accepted and gap_before > 0 else None,
         "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,

@@ -47,8 +47,12 @@ class Failure:
 
 
 class Simulator:
-    def __init__(self, drone: Drone, sim_cfg: SimConfig, noise_cfg: NoiseConfig, seed: int = 0, effects=None):
-        """``effects``: Effect objects or entries; None = the ``sim.effects`` list."""
+    def __init__(self, drone: Drone, sim_cfg: SimConfig, noise_cfg: NoiseConfig, seed: int = 0, effects=None,
+                 draws: bool = True):
+        """``effects``: Effect objects or entries; None = the ``sim.effects`` list. ``draws``
+        False: random effects take their expectation (``start`` gets no generator), as a
+        predictor that cannot know a flight's gusts should."""
+        self.draws = draws
         self.drone = drone
         self.cfg = sim_cfg
         self.noise = noise_cfg
@@ -104,7 +108,7 @@ class Simulator:
             self.body.x += np.asarray(position, dtype=float)
         self.flight = self.flight + 1 if flight is None else int(flight)
         if self._start:
-            rng = np.random.default_rng([abs(int(self.seed)), self.flight])
+            rng = np.random.default_rng([abs(int(self.seed)), self.flight]) if self.draws else None
             for e in self._start:
                 e.start(self, rng)
         for e in self.effects:

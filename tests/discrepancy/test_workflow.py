@@ -134,3 +134,18 @@ def test_the_push_diagnostic_shows_a_wind_push_along_the_wind(tmp_path, small_cf
     assert table.a_x.median() > 2 * table.a_z.abs().median()
     assert rep["push"]["share_of_excess_removed"] > 0.3
     assert rep["push"]["mean"]["a_x"] > 0
+
+
+def test_a_gusty_wind_is_named_with_its_gusts(tmp_path, small_cfg, leaf):
+    """Slow gusts around a 2.5 m/s mean: wind is named, successive windows ask for correlated
+    deviations, and the fitted wind gets random gusts of about the true spread."""
+    cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy, candidates=["wind", "motor_lag"],
+                                                 record=replace(small_cfg.discrepancy.record, flights=6, seconds=6.0)))
+    record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [2.5, 0.0, 0.0], "gust_std": 0.5,
+                                          "gust_time": 3.0}], seed=31)
+    rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
+    assert rep["effects"][0]["name"] == "wind"
+    g = rep["gusts"]
+    assert g["gusty"] and g["lag_one"] > 0.3
+    assert 0.15 < g["gust_std"] < 1.0
+    assert rep["effects"][0]["params"]["gust_std"] == g["gust_std"]

@@ -317,3 +317,10 @@ def test_gusty_wind_is_a_gauss_markov_process_redrawn_per_flight_kept_in_a_windo
     assert not np.array_equal(wind.air(type("S", (), {"t": 1.23})), first)   # a new flight draws anew
     with pytest.raises(UserError, match="gust_std"):
         build_effects([{"name": "wind", "gust_std": -1.0}])
+
+
+def test_a_predicting_simulator_takes_the_gusts_expectation(beam):
+    sim = Simulator(beam, sim_cfg(effects=[{"name": "wind", "velocity": [2.0, 0.0], "gust_std": 1.0}]),
+                    noise_cfg(**QUIET), draws=False)
+    sim.t = 3.0
+    assert np.array_equal(sim.effects[0].air(sim), [2.0, 0.0])

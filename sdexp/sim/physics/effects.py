@@ -12,7 +12,8 @@ objects; the :class:`Simulator` calls their hooks:
 - ``start(sim, rng)``: at the start of every flight (``sim.reset``), with a generator seeded by
   the simulator's seed and the flight's index: draw a random effect's realisation here (a gust
   sequence), so each flight differs, every run repeats, and a window re-initialisation inside
-  the flight (``sim.set_state``) does not redraw it;
+  the flight (``sim.set_state``) does not redraw it. ``rng`` is None when the simulator
+  predicts (``Simulator(draws=False)``, the discrepancy windows): take the expectation;
 - ``reset(sim)``: at every flight start and every re-initialisation (internal states such as
   motor speed);
 - ``actuate(thrust, sim) -> thrust``: commanded -> applied thrust, once per control step, after
@@ -458,7 +459,8 @@ class Wind(QuadraticDrag):
         self._dt = sim.cfg.control_dt
 
     def start(self, sim, rng) -> None:
-        if self.gust_std > 0:
+        self._noise = None   # no generator: the gusts' expectation, none
+        if self.gust_std > 0 and rng is not None:
             self._rng = rng
             self._noise = self.gust_std * rng.standard_normal((1, sim.drone.dim))   # stationary start
 

@@ -1,0 +1,77 @@
+"""Is the named wind gusty, and how? A time-varying wind seen through the windows.
+
+When ``wind`` is named, its mean is what a deterministic prediction can use; gusts are random and
+no window can be predicted from them. But they leave a mark a person (and a simulator) can use:
+the wind each window asks for. Per window, the horizontal wind deviation from the fitted mean
+that best explains its residual (a finite-difference Jacobian per axis, one rollout each for all
+windows; ridge least squares), and then:
+
+- successive windows of a flight (``stride`` apart) ask for correlated deviations when the wind
+  varies slowly, uncorrelated ones when the deviations are estimation noise: the lag-one
+  correlation within flights, tested on the held-out flights (Fisher z, one-sided);
+- the gusts' spread: the deviations' variance less the estimation variance the least squares
+  predict, per axis; their correlation time T = -stride / ln(rho).
+
+A significant correlation gives the fitted wind random gusts with that spread and time (the
+library wind's ``gust_std``, ``gust_time``: a first-order Gauss-Markov process), so the fitted
+simulator flies through gusts like the logs' rather than a steady wind.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import norm
+
+STEP = 0.5   # m/s: the finite-difference step of the wind speed
+
+
+def deviations(pred, windows, sigma, effects, wind: dict, r0, ridge: float = 1e-2):
+    """(W, 2 or 1) per-window horizontal wind deviation (m/s) from ``wind`` (its entry among
+    ``effects``) and (W, k) its least-squares variance, from the residual ``r0`` with ``effects``."""
+    dim = pred.drone.dim
+    axes = [0, 2] if dim == 3 else [0]
+    i = effects.index(wind)
+    W = windows.count
+    R = (r0 / sigma).reshape(W, -1)
+    J = np.empty((W, R.shape[1], len(axes)))
+    for j, a in enumerate(axes):
+        v = np.array(wind["velocity"], dtype=float)
+        v[a] += STEP
+        moved = effects[:i] + [{**wind, "velocity": v.tolist()}] + effects[i + 1:]
+        J[:, :, j] = ((r0 - pred.residual(windows, moved)) / sigma / STEP).reshape(W, -1)
+    dev, var = np.empty((W, len(axes))), np.empty((W, len(axes)))
+    for w in range(W):
+        A = J[w].T @ J[w] + ridge * R.shape[1] * np.eye(len(axes)) / STEP ** 2
+        dev[w] = np.linalg.solve(A, J[w].T @ R[w])
+        # residuals are normalised by the noise floor: unit variance per entry
+        var[w] = np.diag(np.linalg.inv(A) @ (J[w].T @ J[w]) @ np.linalg.inv(A))
+    return dev, var
+
+
+def lag_one(dev: np.ndarray, flight_of: np.ndarray) -> tuple[float, int]:
+    """Correlation of successive windows' deviations within flights, pooled over axes, and the
+    number of pairs."""
+    a, b = [], []
+    for f in np.unique(flight_of):
+        d = dev[flight_of == f]
+        if len(d) > 1:
+            a.append(d[:-1] - dev.mean(axis=0))
+            b.append(d[1:] - dev.mean(axis=0))
+    if not a:
+        return float("nan"), 0
+    a, b = np.concatenate(a).ravel(), np.concatenate(b).ravel()
+    return float(a @ b / np.sqrt((a @ a) * (b @ b))), len(a)
+
+
+def statistics(dev, var, flight_of, held_flights, stride: float, alpha: float) -> dict:
+    """Gust spread and time from all windows; the test of a slowly varying wind on the held-out
+    flights' windows (lag-one correlation > 0, Fisher z, one-sided alpha)."""
+    held = np.isin(flight_of, held_flights)
+    rho_h, n_h = lag_one(dev[held], flight_of[held])
+    z = np.arctanh(np.clip(rho_h, -0.999, 0.999)) * np.sqrt(max(n_h - 3, 1)) if n_h else 0.0
+    rho, n = lag_one(dev, flight_of)
+    spread = np.sqrt(np.maximum(dev.var(axis=0, ddof=1) - var.mean(axis=0), 0.0)) if len(dev) > 1 else np.zeros(dev.shape[1])
+    gusty = bool(n_h and z > norm.ppf(1 - alpha) and rho > 0 and np.any(spread > 0))
+    return {"gusty": gusty, "lag_one_held_out": rho_h, "z": float(z), "pairs_held_out": n_h,
+            "lag_one": rho, "gust_std": float(np.sqrt(np.mean(spread ** 2))),
+            "gust_time": float(-stride / np.log(rho)) if 0 < rho < 1 else None,
+            "mean_deviation": dev.mean(axis=0).tolist()}
