@@ -189,6 +189,7 @@ def polish(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effect
         fit.held_loss = float(np.mean(fit.held_w))
         fit.flags = cand.flags(theta, fit.option)
         fit.evidence["held_residual"] = rh
+        fit.evidence.pop("steady_held_w", None)   # scored steady again (a drifting wind's causal score is redone)
     return fit
 
 
