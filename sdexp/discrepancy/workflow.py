@@ -221,8 +221,12 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         # what the fitted simulator predicts: a drifting wind at its mean (its gusts are random)
         cur_held_w = best.evidence.get("steady_held_w", best.held_w)
         cur_train = pred.residual(train, base)
-        # stop when no channel is left above the floor (held out, replicated on training flights)
-        if not left_over(cur_train, train, cur_held, held):
+        # seek another effect only while the held-out loss is well above the floor's and a
+        # channel is left above it (held out, replicated on training flights): close to the
+        # floor, what is left is the named effect's imperfect fit (a payload lumped on other
+        # vertices), which a second effect would only mimic
+        if (trimmed(cur_held_w) < dcfg.second_effect_ratio * trimmed(floor_w)
+                or not left_over(cur_train, train, cur_held, held)):
             break
     # the gap: excess of the held-out loss over the noise floor's, as trimmed means (the top
     # 10% of windows dropped): a few windows of the floor flights with large errors would
