@@ -53,7 +53,11 @@ def test_a_push_no_candidate_makes_is_answered_unexplained_where_it_shows(tmp_pa
     # workflow here change the thrust's timing or the body's inertia, never a sideways force
     # (a weak rotor would: it tilts the body, and is named with the residual left, see
     # report["remaining_above_floor"])
-    cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy, candidates=["motor_lag", "actuation_delay"]))
+    # (8 flights, 4 held out, against 8 floor flights: the fewest the flight-level test can
+    # pass with, 1 of 495 labellings below 0.05 / 20 channels)
+    d = small_cfg.discrepancy
+    cfg = replace(small_cfg, discrepancy=replace(d, candidates=["motor_lag", "actuation_delay"], floor_flights=8,
+                                                 record=replace(d.record, flights=8)))
     record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [3.0, 0.0, 0.0]}], seed=13)
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
     assert rep["verdict"] == "unexplained" and rep["effects"] == []
