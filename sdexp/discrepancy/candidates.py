@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from sdexp.errors import UserError
-from sdexp.sim.physics.effects import LIBRARY, resolve_effect
+from sdexp.sim.physics.effects import LIBRARY, Effect, resolve_effect
 
 
 @dataclass
@@ -58,6 +58,8 @@ def candidate(entry, drone) -> Candidate | None:
     """The candidate of one ``discrepancy.candidates`` entry (a library name or a ``_target_``
     dict), or None when the effect does not apply to this drone (a 2D rotor has no spin axis)."""
     cls, fixed, head = resolve_effect(entry, "discrepancy.candidates")
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise UserError(f"discrepancy.candidates: {head} is not an sdexp.sim.physics.effects.Effect")
     spec = cls.fit_spec(drone)
     if spec is None:
         if "_target_" in head and not cls.fit_params:
@@ -66,6 +68,10 @@ def candidate(entry, drone) -> Candidate | None:
                             f"(docs/discrepancy_workflow.md)")
         return None
     name = head.get("name") or getattr(cls, "name", None) or cls.__name__
+    for q, lo, hi in zip(spec.params, spec.lower, spec.upper):
+        if not lo <= 0 <= hi:
+            raise UserError(f"discrepancy.candidates: {name}.{q} bounds [{lo}, {hi}] exclude its nominal 0 "
+                            f"(theta = 0 must be the simulator without the effect)")
     kwargs = lambda th, o: {**head, **fixed, **spec.entry(np.asarray(th, dtype=float), o)}  # noqa: E731
     report = spec.report or spec.entry
     base = None

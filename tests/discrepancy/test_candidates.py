@@ -19,6 +19,10 @@ class Undeclared(Effect):
         self.k = k
 
 
+class OffZero(Undeclared):
+    fit_params = {"k": (0.1, 1.0, 0.1)}
+
+
 def test_every_library_effect_declares_its_fit_and_builds_entries_the_simulator_takes(leaf):
     from sdexp.sim.physics.effects import build_effects
     cands = library_candidates(leaf)
@@ -66,6 +70,10 @@ def test_user_effects_are_candidates_by_target_and_errors_name_the_fix(leaf):
         candidate("motor_lagg", leaf)
     with pytest.raises(UserError, match="cannot be imported"):
         candidate({"_target_": "nowhere.Effect"}, leaf)
+    with pytest.raises(UserError, match="is not an sdexp.sim.physics.effects.Effect"):
+        candidate({"_target_": "collections.OrderedDict"}, leaf)
+    with pytest.raises(UserError, match=r"undeclared.k bounds \[0.1, 1.0\] exclude its nominal 0"):
+        candidate({"_target_": "tests.discrepancy.test_candidates.OffZero"}, leaf)
 
 
 def test_windows_replay_several_time_constants_of_the_slowest_lag(leaf):
