@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sdexp.sim.physics.effects import Effect, rotor_normals, vertex_areas
+from sdexp.sim.physics.effects import Effect, MotorLag, rotor_normals, vertex_areas
 
 
 class RotorTilt(Effect):
@@ -34,25 +34,16 @@ class RotorTilt(Effect):
         f[r.verts[i0:i1]] += F * r.weights[i0:i1, None]
 
 
-class PerRotorLag(Effect):
+class PerRotorLag(MotorLag):
     """Each rotor follows its command through its own first-order lag (motors that differ)."""
     name = "per_rotor_lag"
 
     def __init__(self, taus=(0.05, 0.1)):
+        super().__init__(float(np.min(taus)))
         self.taus = np.asarray(taus, dtype=float)
 
     def setup(self, sim):
-        self.tau = np.resize(self.taus, sim.drone.num_rotors)
-
-    def reset(self, sim):
-        self.state = np.zeros(sim.drone.num_rotors)
-
-    def actuate(self, thrust, sim):
-        h = sim.cfg.control_dt / self.tau
-        decay = np.exp(-h)
-        start = self.state
-        self.state = thrust + (start - thrust) * decay
-        return thrust + (start - thrust) * (1.0 - decay) / h
+        self.tau = np.resize(self.taus, sim.drone.num_rotors)   # MotorLag's step, one tau a rotor
 
 
 class HangingMass(Effect):

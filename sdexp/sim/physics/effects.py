@@ -199,7 +199,7 @@ class MotorLag(Effect):
         self.state = np.zeros(sim.drone.num_rotors)
 
     def actuate(self, thrust, sim):
-        if self.tau == 0.0:
+        if not np.any(self.tau):   # tau may be one per rotor (a subclass's)
             return thrust
         h = sim.cfg.control_dt / self.tau
         decay = np.exp(-h)
