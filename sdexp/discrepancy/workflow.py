@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
+from math import comb
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -151,7 +152,6 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         ex = lambda r, w: channel_excess(r, w.flight_of, r_floor, w_floor.flight_of, sigma, w.channels)  # noqa: E731
         return unexplained_channels(ex(r_he, w_he), ex(r_tr, w_tr), dcfg.unexplained_ratio, dcfg.alpha)
 
-    from math import comb
     n_floor = len(np.unique(w_floor.flight_of))
     if 1 / comb(len(held_ids) + n_floor, len(held_ids)) > dcfg.alpha / len(logs.channels):
         log(f"discrepancy: {len(held_ids)} held-out and {n_floor} floor flights are too few for the unexplained "
