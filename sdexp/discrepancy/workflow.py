@@ -18,8 +18,8 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
-from math import comb
 import time
+from math import comb
 from dataclasses import asdict
 from pathlib import Path
 
