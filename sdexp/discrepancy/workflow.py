@@ -19,8 +19,8 @@ import json
 import logging
 import tempfile
 import time
-from math import comb
 from dataclasses import asdict
+from math import comb
 from pathlib import Path
 
 import numpy as np
