@@ -196,6 +196,8 @@ class DiscrepancyConfig:
     unexplained_ratio: float = 1.2     # a channel's residual / noise floor above which, if significant over
                                        # held-out flights and replicated on training flights, it is unexplained
     second_effect_ratio: float = 1.5   # held-out loss / the floor's above which another effect is sought
+    explained_enough: float = 0.8      # share of the gap below which named effects with channels left
+                                       # above the floor are answered "partly" (the rest unexplained)
     push: bool = True                  # the per-window push diagnostic (push.csv/png): 8 rollouts more
     record: RecordConfig = field(default_factory=RecordConfig)
 
@@ -507,6 +509,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",
            (q.min_gain, q.screen, q.max_effects), "min_gain >= 0, screen >= 1, max_effects >= 1")
     _check(q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights, ">= 1")
+    _check(0 < q.explained_enough <= 1, "discrepancy.explained_enough", q.explained_enough, "in (0, 1]")
     _check(q.unexplained_ratio >= 1 and q.second_effect_ratio >= 1, "discrepancy.unexplained_ratio/second_effect_ratio",
            (q.unexplained_ratio, q.second_effect_ratio), ">= 1 each (multiples of the noise floor)")
     r = q.record

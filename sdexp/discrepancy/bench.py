@@ -237,9 +237,9 @@ def summarize(table: pd.DataFrame) -> dict:
         "variant_fair_answer": float(np.mean(variant.top1 == variant.truth)) if len(variant) else None,
         # every effect with a library answer: the library's own and the variants (gusty wind, ...)
         "top1_with_library_answer": float(np.mean(answered.top1 == answered.truth)) if len(answered) else None,
-        # an outside effect answered honestly: unexplained, or named effects that close >= 80% of
-        # the gap its true effect closes (an equivalent explanation)
-        "unmodelled_honest": float(np.mean([v == "unexplained" or (g is not None and g == g and g >= 0.8)
+        # an outside effect answered honestly: unexplained, partly (named effects and the rest
+        # unexplained), or named effects that close >= 80% of the gap its true effect closes
+        "unmodelled_honest": float(np.mean([v in ("unexplained", "partly") or (g is not None and g == g and g >= 0.8)
                                             for v, g in zip(unmod.verdict, unmod.get("oracle_gap_reduction",
                                                                                      [None] * len(unmod)))]))
         if len(unmod) else None,

@@ -87,5 +87,5 @@ def test_a_users_own_hypothesis_is_named_from_the_logs(tmp_path, small_cfg, leaf
     cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy, candidates=["motor_lag", "payload", user]))
     record(cfg, leaf, tmp_path / "logs", [{**user, "angle": 0.2}], seed=21)
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
-    assert rep["verdict"] in ("effect", "tie") and rep["effects"][0]["name"] == "rotor_tilt"
+    assert rep["verdict"] in ("effect", "tie", "partly") and rep["effects"][0]["name"] == "rotor_tilt"
     assert rep["effects"][0]["params"]["angle"] == pytest.approx(0.2, rel=0.5)

@@ -32,7 +32,7 @@ def test_hidden_payload_is_named_added_and_the_gap_shrinks(tmp_path, small_cfg, 
     meta = json.loads((tmp_path / "logs" / "meta.json").read_text())
     assert "payload" not in json.dumps(meta)        # the logs do not say how they were made
     rep = workflow(small_cfg, leaf, tmp_path / "logs", tmp_path / "out")
-    assert rep["verdict"] in ("effect", "tie") and rep["effects"][0]["name"] == "payload"
+    assert rep["verdict"] in ("effect", "tie", "partly") and rep["effects"][0]["name"] == "payload"
     fitted = rep["effects"][0]
     assert fitted["params"]["mass"] == pytest.approx(0.3, rel=0.5)
     assert all(s >= 0 for s in fitted["theta_std"])
