@@ -226,3 +226,22 @@ def decide(fits: list[Fit], held_nominal_w: np.ndarray, n_tried: int, alpha: flo
         if np.mean(d) <= z * se:
             ties.append(f)
     return ("tie" if ties else "effect"), best, ties, rows, z
+
+
+def per_window(pred, windows, sigma, r0, moved, k: int, step: float, ridge: float = 1e-2):
+    """Per-window least squares of k parameters that each window may have its own of (a push,
+    a wind's drift): a finite-difference Jacobian, one rollout per parameter shared by all
+    windows (``moved(j)``: the effects with parameter j stepped by ``step``), then a ridge solve
+    per window (``ridge`` in units of the step keeps what no channel sees at zero). Returns the
+    (W, k) estimates and their (W, k) variances for unit-variance normalised residuals."""
+    W = windows.count
+    R = (r0 / sigma).reshape(W, -1)
+    J = np.empty((W, R.shape[1], k))
+    for j in range(k):
+        J[:, :, j] = ((r0 - pred.residual(windows, moved(j))) / sigma / step).reshape(W, -1)
+    theta, var = np.empty((W, k)), np.empty((W, k))
+    for w in range(W):
+        A = J[w].T @ J[w] + ridge * R.shape[1] * np.eye(k) / step ** 2
+        theta[w] = np.linalg.solve(A, J[w].T @ R[w])
+        var[w] = np.diag(np.linalg.inv(A) @ (J[w].T @ J[w]) @ np.linalg.inv(A))
+    return theta, var

@@ -21,30 +21,22 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import norm
 
+from sdexp.discrepancy.fit import per_window
+
 STEP = 0.5   # m/s: the finite-difference step of the wind speed
 
 
 def deviations(pred, windows, sigma, effects, wind: dict, r0, ridge: float = 1e-2):
     """(W, 2 or 1) per-window horizontal wind deviation (m/s) from ``wind`` (its entry among
     ``effects``) and (W, k) its least-squares variance, from the residual ``r0`` with ``effects``."""
-    dim = pred.drone.dim
-    axes = [0, 2] if dim == 3 else [0]
+    axes = [0, 2] if pred.drone.dim == 3 else [0]
     i = effects.index(wind)
-    W = windows.count
-    R = (r0 / sigma).reshape(W, -1)
-    J = np.empty((W, R.shape[1], len(axes)))
-    for j, a in enumerate(axes):
+
+    def moved(j):
         v = np.array(wind["velocity"], dtype=float)
-        v[a] += STEP
-        moved = effects[:i] + [{**wind, "velocity": v.tolist()}] + effects[i + 1:]
-        J[:, :, j] = ((r0 - pred.residual(windows, moved)) / sigma / STEP).reshape(W, -1)
-    dev, var = np.empty((W, len(axes))), np.empty((W, len(axes)))
-    for w in range(W):
-        A = J[w].T @ J[w] + ridge * R.shape[1] * np.eye(len(axes)) / STEP ** 2
-        dev[w] = np.linalg.solve(A, J[w].T @ R[w])
-        # residuals are normalised by the noise floor: unit variance per entry
-        var[w] = np.diag(np.linalg.inv(A) @ (J[w].T @ J[w]) @ np.linalg.inv(A))
-    return dev, var
+        v[axes[j]] += STEP
+        return effects[:i] + [{**wind, "velocity": v.tolist()}] + effects[i + 1:]
+    return per_window(pred, windows, sigma, r0, moved, len(axes), STEP, ridge)
 
 
 def lag_one(dev: np.ndarray, flight_of: np.ndarray) -> tuple[float, int]:

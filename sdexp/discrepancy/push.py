@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from sdexp.discrepancy.fit import per_window
 from sdexp.sim.physics.effects import Effect
 
 STEP = 0.5   # m/s^2 and rad/s^2: the finite-difference step, a push a sensor sees in 0.2 s
@@ -54,19 +55,14 @@ def estimate(pred, windows, sigma, effects, r0, ridge: float = 1e-2) -> pd.DataF
     residual with ``effects`` alone. ``ridge`` (in units of the finite-difference step) keeps a
     push that no channel sees at zero."""
     dim = pred.drone.dim
-    k = components(dim)
     push = Push(dim)
     W = windows.count
-    R = (r0 / sigma).reshape(W, -1)
-    J = np.empty((W, R.shape[1], k))
-    for j in range(k):
+
+    def moved(j):
         push.values[:] = 0.0
         push.values[j] = STEP
-        J[:, :, j] = ((r0 - pred.residual(windows, list(effects) + [push])) / sigma / STEP).reshape(W, -1)
-    theta = np.empty((W, k))
-    for w in range(W):
-        A = J[w].T @ J[w] + ridge * R.shape[1] * np.eye(k) / STEP ** 2
-        theta[w] = np.linalg.solve(A, J[w].T @ R[w])
+        return list(effects) + [push]
+    theta, _ = per_window(pred, windows, sigma, r0, moved, components(dim), STEP, ridge)
 
     def set_push(w):
         push.values[:] = theta[w]
@@ -76,7 +72,7 @@ def estimate(pred, windows, sigma, effects, r0, ridge: float = 1e-2) -> pd.DataF
     table = pd.DataFrame(theta, columns=names(dim))
     table.insert(0, "t", starts)
     table.insert(0, "flight", [windows.flights[i].name for i in windows.flight_of])
-    table["loss_before"] = np.mean(R ** 2, axis=1)
+    table["loss_before"] = np.mean((r0 / sigma).reshape(W, -1) ** 2, axis=1)
     table["loss_after"] = np.mean((after / sigma).reshape(W, -1) ** 2, axis=1)
     return table
 
