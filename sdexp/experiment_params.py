@@ -132,6 +132,45 @@ class ObstacleParams(Params):
     paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
 
 
+FLEET_TASKS = ("hover", "reach", "velocity", "deform")   # the paper's four tasks (section 5)
+FLEET_CONTROLLERS = ("ours", "rigid_lqr", "geometry_lqr")   # the neural controller needs its own training
+
+
+@dataclass
+class FleetParams(Params):
+    """sdexp.eval.fleet: every drone of ``drones`` learned and flown through ``tasks``."""
+    drones: Optional[List[str]] = drone_choice(None)   # null = all twelve
+    tasks: List[str] = _param(list(FLEET_TASKS))
+    controllers: List[str] = _param(["ours", "rigid_lqr"])
+    seeds: List[int] = _param([0, 1, 2], lambda v: v >= 0, ">= 0")   # each its own data, nets and noise
+    # the data rule: samples = samples_per_channel x the drone's state channels (n_s + n_e + dim:
+    # bends, attitude, position; each comes with its rate), at least min_samples (docs/results.md
+    # "Fleet" has the learning curve behind the numbers)
+    samples_per_channel: int = positive(1500)
+    min_samples: int = positive(8000)
+    hover_seconds: float = positive(10.0)
+    reach_seconds: float = positive(10.0)
+    reach_lengths: float = positive(1.0)    # the trip, diagonal, in body lengths (the largest size)
+    speed: float = positive(0.5)            # m/s, commanded along +x
+    ramp_seconds: float = nonnegative(2.0)  # the goal velocity grows from 0 to speed, ...
+    velocity_seconds: float = positive(10.0)   # ... then is held this long
+    deform_deg: float = 15.0                # the odd sensors' bend target (1, 3, ...), held, then released
+    settle_seconds: float = nonnegative(2.0)
+    deform_ramp_seconds: float = positive(1.0)
+    deform_hold_seconds: float = nonnegative(3.0)
+    workers: int = positive(2)              # (drone, seed) jobs side by side, one core each
+
+    def check(self) -> None:
+        for key, value, allowed in (("tasks", self.tasks, FLEET_TASKS),
+                                    ("controllers", self.controllers, FLEET_CONTROLLERS)):
+            stray = [v for v in value if v not in allowed]
+            if stray or not value:
+                raise UserError(f"{PREFIX}{key} = {value!r}: allowed a non-empty list of {', '.join(allowed)}"
+                                + (f" ({stray[0]!r} is none of them)" if stray else ""))
+        if len(set(self.seeds)) != len(self.seeds):
+            raise UserError(f"{PREFIX}seeds = {self.seeds!r}: allowed distinct seeds")
+
+
 @dataclass
 class ModelTestParams(Params):
     rollout_seconds: float = positive(70.0)   # test flight length; simulated when no held-out episode is this long
@@ -248,7 +287,7 @@ class ReportParams(Params):
 PARAMS: dict[str, type[Params]] = {
     "ablation_decomposition": AblationDecompositionParams, "ablation_fixed_point": AblationFixedPointParams,
     "bench_control": BenchControlParams, "bench_sim": BenchSimParams, "bench_sweep": BenchSweepParams,
-    "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "gallery": GalleryParams,
+    "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "fleet": FleetParams, "gallery": GalleryParams,
     "hover_deform": HoverDeformParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
     "obstacle": ObstacleParams, "record": RecordParams, "report": ReportParams, "sota": SotaParams,
     "validate_fem": ValidateFemParams,

@@ -58,7 +58,7 @@ def check_groups(params) -> None:
 
 # experiments that run a list of drones (experiment.params.drones): only the one named drone=<name>
 # takes the drone.* overrides, the others are loaded from conf/drone/<name>.yaml
-MULTI_DRONE = ("bench_sim", "gallery")
+MULTI_DRONE = ("bench_sim", "fleet", "gallery")
 
 
 def check_overrides_reach(cfg: Config, overrides: list[str] | None) -> None:

@@ -95,3 +95,22 @@ def test_attitude_goal_defaults_to_level():
     t = Task(np.zeros(3), np.zeros(3), 1.0, 0, attitude=[0.1, -0.2, 0.3])
     np.testing.assert_array_equal(t.goal(0.2).e, [0.1, -0.2, 0.3])
     np.testing.assert_array_equal(t.goal(0.2).e_dot, np.zeros(3))
+
+
+def test_a_velocity_ramp_reaches_the_velocity_smoothly_and_keeps_the_position_continuous():
+    v = np.array([0.5, 0.0, 0.0])
+    t = Task(start=np.zeros(3), target=np.zeros(3), seconds=12.0, n_s=2, velocity=v, ramp=2.0)
+    np.testing.assert_allclose(t.goal(0.0).p_dot, 0.0)
+    np.testing.assert_allclose(t.goal(1.0).p_dot, 0.5 * v)          # halfway up the ramp
+    np.testing.assert_allclose(t.goal(1.0).p, v * 0.25)              # v t^2 / (2 ramp)
+    np.testing.assert_allclose(t.goal(2.0).p, v * 1.0)               # continuous at the ramp's end
+    np.testing.assert_allclose(t.goal(12.0).p, v * 11.0)             # then v t, 1 s behind
+    np.testing.assert_allclose(t.goal(12.0).p_dot, v)
+    # the finite difference of the goal position is its velocity, on and after the ramp
+    for time in (0.7, 1.9, 5.0):
+        fd = (t.goal(time + 1e-6).p - t.goal(time - 1e-6).p) / 2e-6
+        np.testing.assert_allclose(fd, t.goal(time).p_dot, atol=1e-6)
+    # without a ramp the goal moves at v from the start, as before
+    np.testing.assert_allclose(Task(np.zeros(3), np.zeros(3), 5.0, 2, velocity=v).goal(3.0).p, 3 * v)
+    with pytest.raises(ValueError, match="ramp"):
+        Task(np.zeros(3), np.zeros(3), 5.0, 2, velocity=v, ramp=-1.0)
