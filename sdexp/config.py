@@ -155,6 +155,8 @@ class ControlConfig:
     r: float = 2.0
     kp: float = 0.03
     kd: float = 0.0001
+    waypoint_max: Optional[float] = None   # ours: m, the waypoint's position offset at most this long
+                                           # (a far goal approached steadily; null: kp alone, the paper)
     n: int = 10                     # relinearise every n control steps (100/n Hz)
     relinearize: bool = True        # false: linearise once at a given operating point
     feedforward: bool = False       # ours: thrust that holds the goal's bends (not in the paper; relinearizing.py)
@@ -487,6 +489,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
     _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
     _check(c.kd >= 0, "control.kd", c.kd, ">= 0")
+    _check(c.waypoint_max is None or c.waypoint_max > 0, "control.waypoint_max", c.waypoint_max, "> 0 or null")
     _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
     _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
     f = cfg.flight

@@ -145,8 +145,8 @@ class FleetParams(Params):
     seeds: List[int] = _param([0, 1, 2], lambda v: v >= 0, ">= 0")   # each its own data, nets and noise
     # the data rule: samples = samples_per_channel x the drone's state channels (n_s + n_e + dim:
     # bends, attitude, position; each comes with its rate), at least min_samples (docs/results.md
-    # "Fleet" has the learning curve behind the numbers)
-    samples_per_channel: int = positive(1500)
+    # "Fleet" has the learning curve behind the numbers); null: data.samples for every drone
+    samples_per_channel: Optional[int] = positive(1500)
     min_samples: int = positive(8000)
     hover_seconds: float = positive(10.0)
     reach_seconds: float = positive(10.0)

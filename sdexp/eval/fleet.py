@@ -57,9 +57,12 @@ def tolerance(task: str, p: FleetParams, trip: float) -> float:
     return {"hover": 0.1, "reach": 0.1 * trip, "velocity": 0.25 * float(p.speed), "deform": 5.0}[task]
 
 
-def samples_for(p: FleetParams, n_s: int, dim: int) -> int:
+def samples_for(p: FleetParams, n_s: int, dim: int, samples: int) -> int:
     """The data rule: ``samples_per_channel`` transitions per state channel (bends, attitude angles,
-    position components), at least ``min_samples``, rounded up to whole hundreds."""
+    position components), at least ``min_samples``, rounded up to whole hundreds; without a rule
+    (null) ``samples`` (data.samples)."""
+    if p.samples_per_channel is None:
+        return int(samples)
     n_e = 3 if dim == 3 else 1
     n = max(int(p.min_samples), int(p.samples_per_channel) * (n_s + n_e + dim))
     return int(-(-n // 100) * 100)
@@ -166,12 +169,11 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
 
 # ---------------------------------------------------------------------------------------- jobs
 
-def job_config(cfg, name: str, seed: int, p: FleetParams, samples: int | None = None):
+def job_config(cfg, name: str, seed: int, p: FleetParams):
     """The run's config for one drone and seed: its drone (the run's own, with its overrides, if it
     is that one), the data rule's samples, and one core (jobs run side by side)."""
     drone = cfg.drone if name == cfg.drone.name else conf.drone(name)
-    if samples is None:
-        samples = samples_for(p, int(drone.num_sensors), int(drone.dim))
+    samples = samples_for(p, int(drone.num_sensors), int(drone.dim), int(cfg.data.samples))
     return replace(cfg, drone=drone, seed=int(seed),
                    data=replace(cfg.data, samples=int(samples), workers=1),
                    model=replace(cfg.model, threads=1), sim=replace(cfg.sim, threads=1))
@@ -248,6 +250,10 @@ def run(run: Run) -> dict:
             results[(name, seed)] = json.loads(path.read_text())
         else:
             todo.append((cfg, name, seed, p, str(path)))
+    rule = ("data.samples" if p.samples_per_channel is None
+            else f"{p.samples_per_channel} a state channel, at least {p.min_samples}")
+    log.info(f"sdexp: fleet: {len(names)} drones x {len(p.seeds)} seeds; transitions ({rule}): " + ", ".join(
+        f"{n} {job_config(cfg, n, 0, p).data.samples}" for n in names))
     if results:
         log.info(f"sdexp: fleet: resuming with {len(results)} of {len(results) + len(todo)} jobs done")
     t0 = time.perf_counter()

@@ -290,3 +290,29 @@ def test_feedforward_holds_a_bend_target_with_a_spare_rotor():
     np.testing.assert_allclose(U[-1], u_eq, atol=0.02)
     with pytest.raises(ValueError, match="feedforward"):
         RelinearizingLQR(dyn, weights(dyn), 2.0, 1.0, 0.0, 5, TMAX, relinearize=False, feedforward=True)
+
+
+def test_waypoint_max_bounds_the_position_offset_of_the_waypoint_and_nothing_else():
+    """A goal 10 m away with kp = 1: the waypoint is 0.5 m toward it; the bends' and rates' parts
+    of the waypoint are kp's as before; a near goal is not touched."""
+    class Linear:   # x_dot = A x + B u on the (s, s_dot, e, e_dot, p, p_dot) layout of a 2D drone, n_s = 1
+        n_s, n_e, dim, m, n = 1, 1, 2, 2, 8
+        slices = {"s": slice(0, 1), "s_dot": slice(1, 2), "e": slice(2, 3), "e_dot": slice(3, 4),
+                  "p": slice(4, 6), "p_dot": slice(6, 8)}
+
+        def linearize(self, x, u):
+            A = np.zeros((8, 8))
+            A[[0, 2, 4, 5], [1, 3, 6, 7]] = 1.0
+            B = np.zeros((8, 2))
+            B[[1, 3, 6, 7], :] = [[1, -1], [1, -1], [0.1, 0.1], [1, 1]]
+            return A @ x + B @ u, A, B
+
+    for goal, expect in (([10.0, 0.0], [0.5, 0.0]), ([0.3, 0.0], [0.3, 0.0])):
+        ctl = RelinearizingLQR(Linear(), np.ones(8), 1.0, kp=1.0, kd=0.0, n=1, max_thrust=10.0, waypoint_max=0.5)
+        ctl.reset(Task(start=[0.0, 0.0], target=goal, seconds=1.0, n_s=1, bend_times=[0.0], bend_targets=[[0.2]]))
+        ctl.act(0.0, State(s=np.zeros(1), e=np.zeros(1), p=np.zeros(2), s_dot=np.zeros(1), e_dot=np.zeros(1),
+                           p_dot=np.zeros(2)))
+        np.testing.assert_allclose(ctl.x_wp[4:6], expect)
+        assert ctl.x_wp[0] == pytest.approx(0.2)   # the bend's waypoint: kp x its error, unbounded
+    with pytest.raises(ValueError, match="waypoint_max"):
+        RelinearizingLQR(Linear(), np.ones(8), 1.0, 1.0, 0.0, 1, 10.0, waypoint_max=0.0)

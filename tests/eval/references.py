@@ -39,6 +39,13 @@ REDUCED = {
     "bench_control": ["experiment.params.samples=10"],
     "obstacle": ["drone=star", "experiment.params.seconds=0.1", "experiment.params.fold_start=0.0",
                  "experiment.params.fold_seconds=0.05"],
+    # two small drones, one seed, each with SHRUNK's 800 transitions (no per-channel rule), one at a time
+    "fleet": ["experiment.params.drones=[rod,engine]", "experiment.params.seeds=[0]",
+              "experiment.params.samples_per_channel=null", "experiment.params.workers=1",
+              "experiment.params.hover_seconds=0.3", "experiment.params.reach_seconds=0.3",
+              "experiment.params.ramp_seconds=0.1", "experiment.params.velocity_seconds=0.2",
+              "experiment.params.settle_seconds=0.05", "experiment.params.deform_ramp_seconds=0.05",
+              "experiment.params.deform_hold_seconds=0.1"],
 }
 
 # metric -> how a fresh reduced run is compared with the reference:
@@ -53,6 +60,10 @@ CHECKS = {
                              "relinearized_0_final_error": "upper"},
     "hover_deform": {"flight_survival_time": "lower", "max_position_deviation_cm": "upper"},
     "bench_control": {},   # timings: printed, never asserted
+    "fleet": {"rod_hover_rigid_lqr_final_error_median": "equal", "engine_reach_rigid_lqr_final_error_median": "equal",
+              "engine_deform_rigid_lqr_bend_rms_deg_median": "equal",
+              "rod_hover_ours_survived": "lower", "engine_velocity_ours_survived": "lower",
+              "rod_hover_ours_final_error_median": "upper", "engine_deform_ours_bend_rms_deg_median": "upper"},
     "obstacle": {"fold_limit_deg": "equal", "width_reduction_percent": "lower", "flight_survival_time": "lower", "max_z_deviation_m": "upper"},
 }
 

@@ -1,0 +1,136 @@
+"""The fleet experiment: a reduced fleet (two small drones, tiny data, short flights) against its
+stored reference, resuming from its job files, a drone that cannot learn recorded as a row, its
+data rule and task schedules, the physics it reports, and its bad input."""
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from sdexp.errors import UserError
+from sdexp.eval import fleet
+from sdexp.eval.experiments import run_experiment
+from sdexp.experiment_params import FleetParams
+from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
+from tests.test_cli import make_cfg, make_config
+
+
+def reduced(cache_dir, *extra):
+    return make_cfg(*reduced_overrides("fleet", cache_dir), *extra)
+
+
+def test_a_reduced_fleet_flies_every_task_and_matches_its_reference(tmp_path, cache_dir):
+    m = run_experiment(reduced(cache_dir), tmp_path)
+    assert compare("fleet", m, json.loads((REFERENCE_DIR / "fleet.json").read_text())) == []
+    table = pd.read_csv(tmp_path / "fleet.csv")
+    assert len(table) == 2 * 4 * 2   # drones x tasks x controllers, one seed
+    assert set(table["task"]) == {"hover", "reach", "velocity", "deform"}
+    assert set(table["controller"]) == {"ours", "rigid_lqr"}
+    assert {"survived", "failure", "final_error", "velocity_error_rms", "max_tilt_deg", "bend_rms_deg"} <= set(table)
+    physics = pd.read_csv(tmp_path / "physics.csv")
+    assert list(physics["drone"]) == ["rod", "engine"] and (physics["d_val_rel_l1"] > 0).all()
+    assert (tmp_path / "fleet.png").exists() and m["jobs"] == 2 and m["jobs_failed"] == 0
+    assert m["wall_seconds"] > 0
+    # the reach task is a diagonal trip of one body length (the rod: 8 m long)
+    reach = table[(table["drone"] == "rod") & (table["task"] == "reach")]
+    assert reach["tolerance"].iloc[0] == pytest.approx(0.1 * 8.0)
+
+
+def test_an_interrupted_fleet_resumes_with_the_jobs_it_has(tmp_path, cache_dir):
+    first = run_experiment(reduced(cache_dir), tmp_path)
+    before = pd.read_csv(tmp_path / "fleet.csv")
+    (tmp_path / "metrics.json").unlink()                 # as if killed before the end ...
+    (tmp_path / "jobs" / "engine_seed0.json").unlink()   # ... with the engine's job unfinished
+    again = run_experiment(reduced(cache_dir), tmp_path)
+    assert first["jobs_run"] == 2 and again["jobs_run"] == 1
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "fleet.csv"), before)   # flights repeat bit for bit
+
+
+def test_a_drone_that_cannot_learn_is_a_recorded_row_and_the_fleet_goes_on(tmp_path, cache_dir, monkeypatch):
+    from sdexp.eval import flights
+    real = flights.Setup
+
+    def setup(cfg, progress=True):
+        if cfg.drone.name == "engine":
+            raise RuntimeError("the data blew up")
+        return real(cfg, progress)
+    monkeypatch.setattr(flights, "Setup", setup)
+    m = run_experiment(reduced(cache_dir), tmp_path)
+    table = pd.read_csv(tmp_path / "fleet.csv")
+    engine = table[table["drone"] == "engine"]
+    assert len(engine) == 1 and not engine["survived"].iloc[0]
+    assert "learning" in engine["failure"].iloc[0] and "the data blew up" in engine["failure"].iloc[0]
+    assert len(table[table["drone"] == "rod"]) == 8 and m["jobs_failed"] == 1
+    assert (tmp_path / "fleet.png").exists()
+
+
+def test_the_data_rule_scales_with_the_state_channels():
+    p = FleetParams()
+    # flower: 8 bends + 3 angles + 3 positions; rod (2D): 8 + 1 + 2
+    assert fleet.samples_for(p, 8, 3, 60000) == 1500 * 14
+    assert fleet.samples_for(p, 8, 2, 60000) == 1500 * 11
+    assert fleet.samples_for(p, 1, 2, 60000) == p.min_samples     # a small drone gets the floor
+    assert fleet.samples_for(FleetParams(samples_per_channel=None), 8, 3, 60000) == 60000
+
+
+def test_the_deform_task_bends_the_odd_sensors_then_releases_them():
+    p = FleetParams(settle_seconds=2.0, deform_ramp_seconds=1.0, deform_hold_seconds=3.0, deform_deg=15.0)
+    times, targets, seconds = fleet.deform_schedule(4, p)
+    assert seconds == pytest.approx(10.0) and times == [0.0, 2.0, 3.0, 6.0, 7.0, 10.0]
+    up = np.deg2rad(15.0)
+    np.testing.assert_allclose(targets[2], [up, 0, up, 0])
+    np.testing.assert_allclose(targets[-1], 0.0)
+
+
+def test_the_velocity_task_ramps_and_the_reach_task_is_diagonal(cache_dir):
+    cfg = make_config("experiment=fleet", "drone=flower")
+
+    class FakeDyn:
+        dim, n_s = 3, 8
+
+    class FakeSetup:
+        dyn = FakeDyn()
+
+        def __init__(self):
+            self.cfg = cfg
+
+        def task(self, start, target, seconds, **kw):
+            from sdexp.control.tasks import Task
+            return Task(start=start, target=target, seconds=seconds, n_s=8, **kw)
+    tasks = fleet.tasks_for(FakeSetup(), cfg.experiment.params)
+    reach, _ = tasks["reach"]
+    assert np.linalg.norm(reach.target) == pytest.approx(3.6) and np.ptp(reach.target) == 0   # one body length
+    velocity, since = tasks["velocity"]
+    assert since == 2.0 and velocity.seconds == 12.0
+    np.testing.assert_allclose(velocity.goal(12.0).p_dot, [0.5, 0, 0])
+
+
+def test_physics_of_a_body_its_thrust_to_weight_and_a_fold_inverse_in_the_modulus(cache_dir):
+    """The engine's hover fold is small (linear elasticity): doubling the modulus halves it."""
+    from dataclasses import replace
+
+    from sdexp.sim.drone import build_drone
+    cfg = make_config("drone=engine")
+    soft = fleet.physics_of(build_drone(cfg.drone, cache_dir, "quadratic"), cfg.sim, hold_seconds=1.0)
+    stiff_cfg = replace(cfg.drone, youngs_modulus=2 * cfg.drone.youngs_modulus)
+    stiff = fleet.physics_of(build_drone(stiff_cfg, cache_dir, "quadratic"), cfg.sim, hold_seconds=1.0)
+    assert soft["thrust_to_weight"] == pytest.approx(6 * 10.0 / 9.81, rel=1e-6)
+    assert soft["lift_tilt_rank"] == soft["lift_tilt_needed"] == 2
+    assert 0 < soft["hover_fold_deg"] < 1
+    assert stiff["hover_fold_deg"] == pytest.approx(soft["hover_fold_deg"] / 2, rel=0.15)
+
+
+@pytest.mark.parametrize("override, words", [
+    ("experiment.params.tasks=[hover,loop]", ["experiment.params.tasks", "'loop'", "hover, reach, velocity, deform"]),
+    ("experiment.params.controllers=[ours,neural]", ["experiment.params.controllers", "'neural'", "rigid_lqr"]),
+    ("experiment.params.tasks=[]", ["experiment.params.tasks", "non-empty"]),
+    ("experiment.params.seeds=[0,0]", ["experiment.params.seeds", "distinct"]),
+    ("experiment.params.samples_per_channel=0", ["experiment.params.samples_per_channel", "> 0"]),
+    ("experiment.params.drones=[rod,zeppelin]", ["drone 'zeppelin' is unknown", "flower"]),
+])
+def test_bad_fleet_lists_name_the_valid_choices_before_anything_runs(tmp_path, override, words):
+    with pytest.raises(UserError) as err:
+        run_experiment(make_cfg("experiment=fleet", override), tmp_path / "run")
+    for w in words:
+        assert w in str(err.value), str(err.value)
+    assert not (tmp_path / "run").exists()
