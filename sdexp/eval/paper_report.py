@@ -263,8 +263,67 @@ def model_test_section(results: Path) -> tuple[list[str], list[tuple]]:
                     "reproduced: a minute in every seed")]
 
 
+def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
+    """results/fleet/: every drone x task x seed in one run (sdexp.eval.fleet), its fleet.csv and
+    physics.csv. A cell (drone, task) flies when ours survives every seed and its median error is
+    within the task's tolerance (the colour scale of fleet.png)."""
+    import pandas as pd
+
+    claim = "ours controls a variety of soft multicopters: hovering, target reaching, velocity tracking, active deformation"
+    folder = results / "fleet"
+    if not (folder / "metrics.json").exists():
+        return [], [(claim, "", "", NOT_RUN, "")]
+    config = yaml.safe_load((folder / "config.yaml").read_text())
+    if (config.get("sim") or {}).get("element") != "quadratic":
+        return [], [(claim, "", "", NOT_RUN, "")]
+    table = pd.read_csv(folder / "fleet.csv")
+    physics = pd.read_csv(folder / "physics.csv").groupby("drone", sort=False).first()
+    params = config["experiment"]["params"]
+    tasks, seeds = list(params["tasks"]), len(params["seeds"])
+    drones = list(dict.fromkeys(table["drone"]))
+    flies, cells = {}, []
+    lines = ["## The fleet: every drone through the four tasks\n",
+             f"`results/fleet/`, seeds {', '.join(map(str, params['seeds']))}, each with its own data and nets "
+             "(the data rule: transitions per state channel). Per task: flights of ours that survived / seeds, the "
+             "median error of those (hover, reach: final position error; velocity: velocity error rms; deform: bend "
+             "rms), and the rigid LQR's survivors. **Bold**: flies (every seed survives, median within the task's "
+             "tolerance). Physics of each body, apart from any controller: thrust-to-weight, the fold the rigid hover "
+             "thrust holds open loop (2 s), and the nets' validation error against copying the velocity (d / g / h).\n",
+             "| drone | " + " | ".join(tasks) + " | thrust/weight | hover fold (deg) | nets' error d / g / h |",
+             "| --- | " + " | ".join("---" for _ in tasks) + " | --- | --- | --- |"]
+    for drone in drones:
+        row = []
+        for task in tasks:
+            sel = table[(table["drone"] == drone) & (table["task"] == task)]
+            ours, rigid = sel[sel["controller"] == "ours"], sel[sel["controller"] == "rigid_lqr"]
+            ok = ours[ours["survived"].astype(bool)]
+            med = float(ok["primary_value"].median()) if len(ok) else float("nan")
+            good = len(ok) == seeds and med <= float(ok["tolerance"].iloc[0])
+            flies[(drone, task)] = good
+            text = f"{len(ok)}/{seeds}" + (f", {med:.2g}" if len(ok) else "")
+            text = f"**{text}**" if good else text
+            if len(rigid):
+                text += f" (rigid {int(rigid['survived'].astype(bool).sum())}/{seeds})"
+            row.append(text)
+        ph = physics.loc[drone] if drone in physics.index else None
+        phys = ["-"] * 3 if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]) else [
+            f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}",
+            " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh")]
+        lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(phys) + " |")
+    lines += ["", f"The fleet's wall time: {json.loads((folder / 'metrics.json').read_text())['wall_seconds'] / 3600:.1f} h "
+              "on 2 cores. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
+    n_fly = sum(flies.values())
+    per_task = ", ".join(f"{t} {sum(flies[(d, t)] for d in drones)}" for t in tasks)
+    all_tasks = sum(all(flies[(d, t)] for t in tasks) for d in drones)
+    verdict = REPRODUCED if n_fly == len(flies) else PARTLY if n_fly > len(flies) / 2 else NOT
+    return lines, [(claim, f"{len(drones)} designs, four tasks",
+                    f"{n_fly} of {len(flies)} drone-task pairs fly (of {len(drones)} drones: {per_task}); "
+                    f"{all_tasks} drones fly all four", verdict,
+                    "reproduced: every drone flies every task; partly: most drone-task pairs fly")]
+
+
 SECTIONS = (sota_section, fixed_point_section, nsweep_section, hover_section, obstacle_section,
-            decomposition_section, model_test_section)
+            fleet_section, decomposition_section, model_test_section)
 
 
 def render(results: Path = RESULTS) -> str:

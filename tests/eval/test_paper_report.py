@@ -40,3 +40,40 @@ def test_verdicts_follow_the_numbers(tmp_path):
     _sota_run(tmp_path / "sota_seeds" / "seed3", 3, False, 9.0, 20.0, element="linear")
     assert _verdicts(tmp_path) == ["partly", "partly"]
     assert "seeds 0, 1, 2" in render(tmp_path)
+
+
+def _fleet_run(folder, errors):
+    """A fleet run of two drones, hover only, two seeds: ``errors[drone]`` the final errors of ours
+    (None: that seed lost control)."""
+    import pandas as pd
+    folder.mkdir(parents=True)
+    rows = []
+    for drone, errs in errors.items():
+        for seed, err in enumerate(errs):
+            rows.append({"drone": drone, "seed": seed, "task": "hover", "controller": "ours", "survived": err is not None,
+                         "primary": "final_error", "primary_value": err if err is not None else 5.0, "tolerance": 0.1})
+            rows.append({"drone": drone, "seed": seed, "task": "hover", "controller": "rigid_lqr", "survived": False,
+                         "primary": "final_error", "primary_value": 3.0, "tolerance": 0.1})
+    pd.DataFrame(rows).to_csv(folder / "fleet.csv", index=False)
+    pd.DataFrame([{"drone": d, "seed": 0, "thrust_to_weight": 5.0, "hover_fold_deg": 2.0, "d_val_rel_l1": 0.3,
+                   "g_val_rel_l1": 0.4, "h_val_rel_l1": 0.5} for d in errors]).to_csv(folder / "physics.csv", index=False)
+    (folder / "metrics.json").write_text(json.dumps({"wall_seconds": 3600.0}))
+    config = {"seed": 0, "sim": {"element": "quadratic"}, "experiment": {"params": {"tasks": ["hover"], "seeds": [0, 1]}}}
+    (folder / "config.yaml").write_text(yaml.safe_dump(config))
+
+
+def _fleet_verdict(results):
+    row = next(line for line in render(results).splitlines() if line.startswith("| ours controls a variety"))
+    return row.split("**")[1], row
+
+
+def test_the_fleet_verdict_counts_the_drone_task_pairs_that_fly(tmp_path):
+    _fleet_run(tmp_path / "fleet", {"flower": [0.05, 0.08], "rod": [0.02, 0.09]})
+    assert _fleet_verdict(tmp_path)[0] == "reproduced"
+    # the rod survives both seeds but its median ends 0.3 m off: one pair of two flies
+    import shutil
+    shutil.rmtree(tmp_path / "fleet")
+    _fleet_run(tmp_path / "fleet", {"flower": [0.05, 0.08], "rod": [0.3, 0.3], "star": [0.05, None]})
+    verdict, row = _fleet_verdict(tmp_path)
+    assert verdict == "not reproduced" and "1 of 3 drone-task pairs fly" in row
+    assert "| star | 1/2, 0.05 (rigid 0/2) |" in render(tmp_path)
