@@ -122,10 +122,13 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: flo
             raise LqrFailure(f"{first}; on the controllable subspace: {err}") from err
 
 
-def state_weights(sizes: dict[str, int], q_s: float, q_e: float, q_p: float, velocity_scale: float) -> np.ndarray:
+def state_weights(sizes: dict[str, int], q_s: float, q_e: float, q_p: float, velocity_scale: float,
+                  q_p_axes=None) -> np.ndarray:
     """Diagonal of Q over (s, s_dot, e, e_dot, p, p_dot): the supplement's gains for s, e and p,
-    their rates weighted ``velocity_scale`` times as much."""
+    their rates weighted ``velocity_scale`` times as much; ``q_p_axes`` (one factor per axis)
+    weighs the position axes apart, e.g. Z held tighter than the direction of travel."""
+    axes = np.ones(sizes["dim"]) if q_p_axes is None else np.asarray(q_p_axes, dtype=float)
     parts = []
-    for gain, n in ((q_s, sizes["n_s"]), (q_e, sizes["n_e"]), (q_p, sizes["dim"])):
-        parts += [np.full(n, gain), np.full(n, gain * velocity_scale)]
+    for gain in (np.full(sizes["n_s"], float(q_s)), np.full(sizes["n_e"], float(q_e)), q_p * axes):
+        parts += [gain, gain * velocity_scale]
     return np.concatenate(parts)

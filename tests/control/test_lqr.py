@@ -203,6 +203,9 @@ def test_state_weights_follow_the_state_layout():
     np.testing.assert_array_equal(q, [100, 100, 50, 50, 50, 25, 200, 200, 100, 100])
     q3 = state_weights({"n_s": 0, "n_e": 3, "dim": 3}, 1.0, 2.0, 3.0, 1.0)
     np.testing.assert_array_equal(q3, [2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3])
+    # Z held ten times tighter than X and Y, its velocity too
+    qz = state_weights({"n_s": 1, "n_e": 3, "dim": 3}, 1.0, 2.0, 3.0, 0.5, q_p_axes=[1, 1, 10])
+    np.testing.assert_array_equal(qz[-6:], [3, 3, 30, 1.5, 1.5, 15])
 
 
 def test_sampled_gain_approaches_the_continuous_one_and_stays_stable_where_it_does_not():
