@@ -55,5 +55,5 @@ def make_task(kind: str, dim: int, n_s: int, seconds: float | None = None, start
 def _vector(name: str, value, dim: int) -> np.ndarray:
     v = np.asarray(value, dtype=float).ravel()
     if v.shape != (dim,) or not np.all(np.isfinite(v)):
-        raise UserError(f"{name} = {list(np.atleast_1d(value))!r}: allowed {dim} finite numbers (the drone is {dim}D)")
+        raise UserError(f"{name} = {np.atleast_1d(value).tolist()!r}: allowed {dim} finite numbers (the drone is {dim}D)")
     return v
