@@ -29,7 +29,8 @@ def make_env(env_id: str, overrides: list[str], seconds: float | None):
     """The env with actions rescaled to [-1, 1], in SB3's Monitor (episode returns as they were)."""
     from stable_baselines3.common.monitor import Monitor
     kw = {} if seconds is None else {"seconds": seconds}
-    return Monitor(gym.wrappers.RescaleAction(gym.make(env_id, overrides=overrides, **kw), -1.0, 1.0))
+    return Monitor(gym.wrappers.RescaleAction(gym.make(env_id, overrides=overrides, **kw),
+                                           np.float32(-1), np.float32(1)))
 
 
 def main(argv=None) -> dict:

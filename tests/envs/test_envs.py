@@ -155,3 +155,10 @@ def test_ours_flies_in_the_env_as_fly_flies_it(cache_dir):
     first, _ = policy.predict(obs[None], episode_start=np.array([True]))
     policy.reset()
     assert np.array_equal(first[0], policy(obs))
+
+
+def test_the_benchmark_reports_steps_per_second_on_one_and_two_cores(cache_dir):
+    from sdexp.envs.bench import main
+    (row,) = main(["--drones", "rod", "--steps", "20", "--override", f"cache_dir={cache_dir}"])
+    assert row["env"] == "sdexp/Rod-Hover-v0"
+    assert row["steps_per_s_1_core"] > 0 and row["steps_per_s_2_cores"] > 0    # timings: never asserted
