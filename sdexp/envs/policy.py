@@ -49,22 +49,26 @@ class OursPolicy:
         from sdexp.eval.controllers import ours
         c = ours(self.cfg, self.dyn, self.max_thrust)
         c.observed = _ObservedGoal(self.slices)
-        c.steps = 0
         return c
 
     def reset(self, count: int = 1) -> None:
         """A new episode in every one of ``count`` envs."""
-        self._controllers = [self._start(self._controller()) for _ in range(count)]
+        self._controllers = []
+        for i in range(count):
+            self._restart(i)
 
-    def _start(self, c):
+    def _restart(self, index: int) -> None:
+        """A fresh episode for sub-env ``index`` (its controller made on first use)."""
+        while len(self._controllers) <= index:
+            self._controllers.append(self._controller())
+        c = self._controllers[index]
         c.reset(c.observed)
         c.steps = 0
-        return c
 
     def act(self, obs, index: int = 0) -> np.ndarray:
         """The thrusts for one observation (of sub-env ``index``)."""
-        while len(self._controllers) <= index:
-            self._controllers.append(self._start(self._controller()))
+        if len(self._controllers) <= index:
+            self._restart(index)
         c = self._controllers[index]
         obs = np.asarray(obs, dtype=float)
         c.observed.x = obs[self.n:]
@@ -80,11 +84,8 @@ class OursPolicy:
         restarts that env's controller. One observation (obs_dim,) or a batch (n_envs, obs_dim)."""
         obs = np.asarray(observation, dtype=float)
         batch = obs.reshape(-1, obs.shape[-1])
-        starts = np.ones(len(batch), bool) if episode_start is None and not self._controllers else \
-            np.zeros(len(batch), bool) if episode_start is None else np.asarray(episode_start, bool).reshape(-1)
-        for i in np.flatnonzero(starts):
-            while len(self._controllers) <= i:
-                self._controllers.append(self._controller())
-            self._start(self._controllers[i])
+        if episode_start is not None:
+            for i in np.flatnonzero(np.asarray(episode_start, bool).reshape(-1)):
+                self._restart(int(i))
         actions = np.stack([self.act(o, i) for i, o in enumerate(batch)])
         return (actions if obs.ndim > 1 else actions[0]), None
