@@ -3,11 +3,16 @@ progress bars stay off a console that is not a terminal."""
 import os
 import subprocess
 import sys
+from pathlib import Path
+
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def sdexp(*args, cwd, cache):
+    # PYTHONPATH: this checkout's sdexp, not whichever one is installed
     return subprocess.run([sys.executable, "-m", "sdexp.cli", *args], capture_output=True, text=True, cwd=cwd,
-                          env={**os.environ, "HYDRA_FULL_ERROR": "", "SDEXP_CACHE": str(cache)})
+                          env={**os.environ, "HYDRA_FULL_ERROR": "", "SDEXP_CACHE": str(cache), "PYTHONPATH": str(ROOT)})
 
 
 def test_a_runs_log_file_holds_what_the_run_said(tmp_path):
@@ -59,3 +64,86 @@ def test_the_log_says_which_fem_kernels_run(tmp_path, caplog):
         assert any("FEM kernels: compiled C" in r.getMessage() for r in caplog.records)
     finally:
         native.library.cache_clear()
+
+
+def test_a_redirected_cold_run_logs_every_long_phase_with_its_time(tmp_path):
+    """Output redirected (not a terminal), nothing cached: meshing, data generation, each net's
+    training, the neural controller's training and each flight log their start and their end with
+    the time taken and a rate, on the console and in cli.log."""
+    import re
+
+    from tests.eval.references import reduced_overrides
+    run = tmp_path / "run"
+    res = sdexp(*reduced_overrides("sota", str(tmp_path / "cache")), f"hydra.run.dir={run}", cwd=tmp_path,
+                cache=tmp_path / "cache")
+    assert res.returncode == 0, res.stderr
+    log = (run / "cli.log").read_text()
+    phases = ["meshing rod", "data generation rod", "training net d", "training net g", "training net h",
+              "training neural controller", "flight ours", "flight LQR (rest shape)",
+              "flight geometry-updating LQR", "flight neural controller"]
+    for phase in phases:
+        for text in (res.stdout, log):
+            assert f"sdexp: {phase}" in text and re.search(rf"{re.escape(phase)}[^\n]*: started", text), phase
+            assert re.search(rf"{re.escape(phase)}[^\n]*: done in \d+\.\d s", text), phase
+    assert re.search(r"data generation rod[^\n]*: done in [^\n]* [\d,.]+ samples/s", log)
+    assert re.search(r"flight ours[^\n]*: done in [^\n]* steps/s; 0\.30 s flown \(survived\)", log)
+    assert "\r" not in res.stderr and "it/s" not in res.stderr    # no progress bar off a terminal
+
+
+def phase_lines(caplog, **kw):
+    """The lines of a Phase run on a fake clock (1 s per update unless ``step``)."""
+    import logging
+
+    from sdexp.log import Phase
+    now = [0.0]
+    step = kw.pop("step", 1.0)
+    updates = kw.pop("updates")
+    with caplog.at_level(logging.INFO, logger="sdexp.progress"):
+        phase = Phase("job", clock=lambda: now[0], **{"bar": False, "heartbeat": False, **kw})
+        for _ in range(updates):
+            now[0] += step
+            phase.update()
+        phase.close()
+    return [r.getMessage() for r in caplog.records]
+
+
+def test_progress_lines_come_every_tenth_but_not_within_seconds(caplog):
+    from sdexp import log
+    lines = phase_lines(caplog, total=100, unit="steps", updates=100)
+    assert lines[0] == "sdexp: job: started (100 steps)"
+    assert lines[-1] == "sdexp: job: done in 100.0 s, 1 steps/s"
+    middle = lines[1:-1]
+    assert [m.split(": ")[2].split("%")[0] for m in middle] == [str(p) for p in range(10, 100, 10)]
+    assert "10% (10/100 steps), 10.0 s so far, 1 steps/s, about 90.0 s left" in middle[0]
+    caplog.clear()
+    # a phase of a few seconds: start and end only
+    assert len(phase_lines(caplog, total=100, unit="steps", updates=100, step=log.MIN_INTERVAL / 100)) == 2
+
+
+def test_a_phase_without_total_beats_and_an_aborted_one_says_so(caplog):
+    import logging
+    import time
+
+    from sdexp import log
+    saved = log.MAX_INTERVAL
+    log.MAX_INTERVAL = 0.2
+    try:
+        with caplog.at_level(logging.INFO, logger="sdexp.progress"):
+            try:
+                with log.Phase("meshing", bar=False):
+                    time.sleep(1.5)
+                    raise ValueError("boom")
+            except ValueError:
+                pass
+    finally:
+        log.MAX_INTERVAL = saved
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[0] == "sdexp: meshing: started" and lines[-1].startswith("sdexp: meshing: stopped after 1.")
+    assert any(line.endswith("s so far") for line in lines[1:-1])    # the heartbeat
+    time.sleep(1.2)
+    assert len(caplog.records) == len(lines)                          # and it stopped with the phase
+
+
+def test_on_a_terminal_the_bar_replaces_the_progress_lines(caplog):
+    lines = phase_lines(caplog, total=100, unit="steps", updates=100, bar=True)
+    assert len(lines) == 2 and lines[1].startswith("sdexp: job: done in")

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from sdexp.cache import atomic_write, build_lock, config_key, key_of
+from sdexp.log import Phase
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.sensing import State
@@ -72,12 +73,14 @@ def train_policy(dyn: LearnedDynamics, data_x: np.ndarray, max_thrust: float, cf
     threads = torch.get_num_threads()
     torch.set_num_threads(1)   # 64 x 128 matrices: a second thread only waits (and stalls on a busy core)
     try:
-        return _train_policy(dyn, data_x, max_thrust, cfg, seed, progress)
+        with Phase("training neural controller", total=int(cfg.iterations), unit="iterations",
+                   enabled=progress) as bar:
+            return _train_policy(dyn, data_x, max_thrust, cfg, seed, bar)
     finally:
         torch.set_num_threads(threads)
 
 
-def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
+def _train_policy(dyn, data_x, max_thrust, cfg, seed, bar):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     d32 = _float32_dynamics(dyn)
@@ -91,11 +94,7 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
     B, H, rad = int(cfg.batch), int(cfg.horizon), float(cfg.goal_radius)
     dim = sl["p"].stop - sl["p"].start
     losses = []
-    it = range(int(cfg.iterations))
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="train neural controller", unit="it", leave=False, disable=None)
-    for _ in it:
+    for _ in range(int(cfg.iterations)):
         x0 = np.zeros((B, dyn.n))
         half = B // 2
         x0[half:] = data_x[rng.integers(0, len(data_x), B - half)]
@@ -120,8 +119,8 @@ def _train_policy(dyn, data_x, max_thrust, cfg, seed, progress):
             nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
             opt.step()
         losses.append(float(loss.detach()))
-        if progress:
-            it.set_postfix(loss=f"{losses[-1]:.3f}")
+        bar.set_postfix(loss=f"{losses[-1]:.3f}")
+        bar.update()
     return policy.eval(), losses
 
 

@@ -333,13 +333,11 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
 
 
 def run(run: Run) -> dict:
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     cfg, p = run.cfg, run.params
-    n = None
-    bar = tqdm(total=n, desc="discrepancy_bench scenarios", disable=None)
-    metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, run.out_dir, cfg.cache_dir,
-                        int(cfg.seed), int(p.workers), progress=bar.update)
-    bar.close()
+    with Phase("discrepancy_bench scenarios", unit="scenarios") as bar:
+        metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, run.out_dir, cfg.cache_dir,
+                            int(cfg.seed), int(p.workers), progress=bar.update)
     log.info(json.dumps(metrics, indent=2))
     return metrics

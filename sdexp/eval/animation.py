@@ -251,7 +251,7 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -295,8 +295,8 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
     background = canvas.copy_from_bbox(fig.bbox)
     sink = _Sink(path, fps)
     try:
-        for i in tqdm(range(len(frames)), desc=f"animation {path.name}", unit="frame", leave=False,
-                      disable=None if progress else True):
+        phase = Phase(f"animation {path.name}", len(frames), "frames", enabled=progress)
+        for i in phase.iterate(range(len(frames))):
             canvas.restore_region(background)
             shift = scope.offset(frames[i])
             draw.frame(frames[i] - shift, cmap(norm(face_values[i])), shift)

@@ -75,7 +75,7 @@ def drone_config(cfg, name: str):
 
 def run(run: Run) -> dict:
     from sdexp.eval.plots import bench_plot
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     cfg, p, out_dir = run.cfg, run.params, run.out_dir
     names = list(p.drones or drone_names())
@@ -83,14 +83,15 @@ def run(run: Run) -> dict:
     gravity, load = float(cfg.sim.gravity), float(p.bend_load)
     refine = list(p.refine)
     rows = []
-    for name in tqdm(names, desc="bench_sim drones", disable=None):
+    for name in Phase("bench_sim drones", len(names), "drones").iterate(names):
         d = drone_config(cfg, name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for element in elements:
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
                          **response_errors(drone, ref, gravity, load)})
-    for name in tqdm(names if p.resolution_factors else [], desc="bench_sim resolutions", disable=None):
+    for name in Phase("bench_sim resolutions", len(names), "drones", enabled=bool(p.resolution_factors)).iterate(
+            names if p.resolution_factors else []):
         d = drone_config(cfg, name)
         ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
         for factor in p.resolution_factors:
@@ -104,8 +105,8 @@ def run(run: Run) -> dict:
         base = drone_config(cfg, scaling)
         ref = converged_response(base, cfg.cache_dir, refine, gravity, load)
         for element in elements:
-            for edge in tqdm(list(p.scaling_edges[element]), desc=f"bench_sim {scaling} {element}",
-                             disable=None):
+            edges = list(p.scaling_edges[element])
+            for edge in Phase(f"bench_sim {scaling} {element}", len(edges), "meshes").iterate(edges):
                 d = with_edge(base, edge)
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),

@@ -1,5 +1,5 @@
 """What every control experiment shares: the drone, its learned model, a flight with a progress
-bar, the per-flight CSV, and the position-over-time figure of the paper's SOTA comparison."""
+bar (or log lines), the per-flight CSV, and the position-over-time figure of the paper's SOTA comparison."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -36,24 +36,24 @@ class Setup:
 
     def fly(self, sim: Simulator, controller, task: Task, label: str | None = None, watch=None,
             recorder=None) -> tuple[Flight, dict]:
-        """Fly with a progress bar; ``watch(sim)`` is called after every step (e.g. contacts).
+        """Fly as a logged phase (a progress bar on a terminal, sdexp.log.Phase); ``watch(sim)`` is
+        called after every step (e.g. contacts).
         The loss-of-control limits are the config's ``flight`` group, the same for every controller.
         ``recorder``: a ``FrameRecorder`` that keeps the frames of an animation (``animate``)."""
-        bar = None
-        if self.progress:
-            from tqdm import tqdm
-            bar = tqdm(total=int(round(task.seconds / sim.cfg.control_dt)), desc=f"fly {label or controller.name}",
-                       unit="step", leave=False, disable=None)
+        from sdexp.log import Phase
+        steps = int(round(task.seconds / sim.cfg.control_dt))
+        bar = Phase(f"flight {label or controller.name}, {task.seconds:g} s", total=steps, unit="steps",
+                    enabled=self.progress)
 
         def on_step():
-            if bar is not None:
-                bar.update()
+            bar.update()
             if watch is not None:
                 watch(sim)
-        flight = fly(sim, controller, task, on_step=on_step, limits=self.cfg.flight,
-                     recorder=recorder)
-        if bar is not None:
-            bar.close()
+        with bar:
+            flight = fly(sim, controller, task, on_step=on_step, limits=self.cfg.flight, recorder=recorder)
+            flown = flight.t[-1]
+            ended = f"failed: {flight.failure}" if flight.failure else "survived"
+            bar.close(f"{flown:.2f} s flown ({ended}), {flown / max(bar.elapsed, 1e-9):.2f}x real time")
         return flight, metrics(flight, self.dyn.slices["p"], self.dyn.slices["e"], task.seconds)
 
     def recorder(self, on: bool):

@@ -13,7 +13,7 @@ from sdexp.sim.mesh.surface import face_normals
 def run(run: Run) -> dict:
     from sdexp.figures import pyplot
     plt = pyplot()
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     cfg = run.cfg
     names = list(run.params.drones or drone_names())
@@ -21,7 +21,7 @@ def run(run: Run) -> dict:
     rows = int(np.ceil(len(names) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.6 * rows), squeeze=False)
     table = []
-    for ax, name in zip(axes.ravel(), tqdm(names, desc="gallery", disable=None)):
+    for ax, name in zip(axes.ravel(), Phase("gallery", len(names), "drones").iterate(names)):
         d = drone_config(cfg, name)
         drone = build_drone(d, cfg.cache_dir, cfg.sim.element)
         x = drone.fem.rest

@@ -152,8 +152,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     """A test flight under random thrust holds drawn as the data were, read through the sensors only:
     (X (T+1, n) decomposed states, U (T, m) commands, seed used). A flight that fails is
     retried with the next seed; the longest one is kept."""
-    from tqdm import tqdm
-
+    from sdexp.log import Phase
     from sdexp.model.generate import commands, hover_centre
     from sdexp.sim.drone import build_drone
     from sdexp.sensing import decompose
@@ -169,7 +168,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
         cmds = commands(drone, cfg.data, centre, dt, np.random.default_rng(seed + attempt))
         xs = [decompose(sim.reset(), drone.layout).x]
         us = []
-        for _ in tqdm(range(steps), desc="test flight", leave=False, disable=None):
+        for _ in Phase(f"test flight {attempt}", total=steps, unit="steps").iterate(range(steps)):
             u = next(cmds)
             r = sim.step(u)
             if not sim.alive:

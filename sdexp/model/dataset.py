@@ -172,7 +172,7 @@ def _run_chunk(spec: dict, key: str, c: int, n: int, path: str, progress=None) -
 # ------------------------------------------------------------------------------ generation
 
 def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     folder = final.with_suffix(".chunks")
     samples, chunk = int(spec["data"].samples), spec["chunk_samples"]
@@ -194,8 +194,8 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
         from sdexp.model.generate import _simulator, hover_centre, sim_config
         drone, _ = _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
         spec = {**spec, "centre": hover_centre(drone, spec["data"], sim_config(spec))}  # once, not per worker
-    bar = tqdm(total=samples, initial=sum(sizes[c] for c in infos), unit="samples", smoothing=0.05,
-               desc=f"data {spec['drone'].name}", disable=None)
+    bar = Phase(f"data generation {spec['drone'].name} ({workers} worker{'s' if workers > 1 else ''})",
+                total=samples, initial=sum(sizes[c] for c in infos), unit="samples")
     t0 = time.perf_counter()
     try:
         if todo and workers == 1:
@@ -203,8 +203,9 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
                 infos[c] = _run_chunk(spec, key, c, sizes[c], str(_chunk_path(folder, c)), bar.update)
         elif todo:
             _run_pool(spec, key, folder, sizes, todo, workers, infos, bar)
-    finally:
         bar.close()
+    finally:
+        bar.abort()   # an error or a kill stopped it: its line says so
     wall = time.perf_counter() - t0
 
     # merge, in chunk order; episode ids made global

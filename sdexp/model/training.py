@@ -190,7 +190,7 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     """Train one ResidualMLP; returns (net in eval mode, per-epoch history, wall seconds).
     ``report(1)`` is called after every epoch (progress from a worker process); ``threads``
     overrides ``model.threads``."""
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     torch.set_num_threads(int(threads or model_cfg.threads))
     torch.manual_seed(seed)
@@ -215,37 +215,42 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     keep_best = bool(model_cfg.keep_best)
     best_loss, best_state, best_epoch = float("inf"), None, epochs
     t0 = time.perf_counter()
-    bar = tqdm(range(1, epochs + 1), desc=f"train {name}", disable=True if not progress or report is not None else None,
-               leave=False)
-    for epoch in bar:
-        net.train()
-        perm = torch.randperm(len(X_tr), generator=gen)[: n_batches * bs]
-        Xp, Tp = X_tr[perm], T_tr[perm]
-        total = torch.zeros(())
-        for b in range(n_batches):
-            sl = slice(b * bs, (b + 1) * bs)
-            batch_loss = loss(net.raw_output(Xp[sl]), Tp[sl])
-            opt.zero_grad(set_to_none=True)
-            batch_loss.backward()
-            opt.step()
-            total += batch_loss.detach()
-        lr = opt.param_groups[0]["lr"]
-        sched.step()
-        net.eval()
-        val_loss, val_l1, val_mae = _evaluate(net, X_va, T_va, loss)
-        train_loss = float(total) / n_batches
-        if not np.isfinite(train_loss):
-            raise RuntimeError(f"network {name!r}: the training loss is {train_loss} at epoch {epoch}")
-        if keep_best and val_loss < best_loss:
-            best_loss, best_epoch = val_loss, epoch
-            best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-        rows.append({"epoch": epoch, "lr": lr, "train_loss": train_loss, "val_loss": val_loss,
-                     "val_l1": val_l1, "val_rel_l1": float(np.mean(val_mae / copy_mae)),
-                     "seconds": time.perf_counter() - t0,
-                     "val_rel_l1_channels": [float(v) for v in val_mae / copy_mae]})
-        bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val_loss:.4f}")
-        if report is not None:
-            report(1)
+    # a worker's progress goes through ``report`` to its parent's phase
+    bar = Phase(f"training net {name}", total=epochs, unit="epochs", enabled=progress and report is None)
+    try:
+        for epoch in range(1, epochs + 1):
+            net.train()
+            perm = torch.randperm(len(X_tr), generator=gen)[: n_batches * bs]
+            Xp, Tp = X_tr[perm], T_tr[perm]
+            total = torch.zeros(())
+            for b in range(n_batches):
+                sl = slice(b * bs, (b + 1) * bs)
+                batch_loss = loss(net.raw_output(Xp[sl]), Tp[sl])
+                opt.zero_grad(set_to_none=True)
+                batch_loss.backward()
+                opt.step()
+                total += batch_loss.detach()
+            lr = opt.param_groups[0]["lr"]
+            sched.step()
+            net.eval()
+            val_loss, val_l1, val_mae = _evaluate(net, X_va, T_va, loss)
+            train_loss = float(total) / n_batches
+            if not np.isfinite(train_loss):
+                raise RuntimeError(f"network {name!r}: the training loss is {train_loss} at epoch {epoch}")
+            if keep_best and val_loss < best_loss:
+                best_loss, best_epoch = val_loss, epoch
+                best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+            rows.append({"epoch": epoch, "lr": lr, "train_loss": train_loss, "val_loss": val_loss,
+                         "val_l1": val_l1, "val_rel_l1": float(np.mean(val_mae / copy_mae)),
+                         "seconds": time.perf_counter() - t0,
+                         "val_rel_l1_channels": [float(v) for v in val_mae / copy_mae]})
+            bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val_loss:.4f}")
+            bar.update()
+            if report is not None:
+                report(1)
+        bar.close()
+    finally:
+        bar.abort()   # an error stopped it: its line says so
     seconds = time.perf_counter() - t0
     if best_state is not None:
         net.load_state_dict(best_state)
@@ -374,11 +379,11 @@ def _train_parallel(jobs, epochs: int, progress: bool):
     (measured 1.5 s/epoch on 2 threads vs 2.0 s on 1), and a second busy process makes
     OpenMP's barriers collapse (10-30 s/epoch measured); three one-thread processes share two
     cores at 2/3 speed each and degrade gracefully under load."""
-    from tqdm import tqdm
+    from sdexp.log import Phase
 
     names = ", ".join(job[-1] for job in jobs)
-    with tqdm(total=epochs * len(jobs), desc=f"train {names}", unit="epoch", disable=None if progress else True,
-              leave=False) as bar:
+    with Phase(f"training nets {names} (one process each)", total=epochs * len(jobs), unit="epochs",
+               enabled=progress) as bar:
         results = run_spawned(_train_job, jobs, len(jobs), bar.update)
     return [(ResidualMLP.from_saved(spec, state), pd.DataFrame(hist), sec) for spec, state, hist, sec in results]
 

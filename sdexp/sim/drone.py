@@ -83,8 +83,9 @@ def make_shape(cfg) -> Shape:
     return shape
 
 
-def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh ``shape`` with the ``drone.mesh`` settings (a MeshConfig), through the cache."""
+def mesh_shape(shape: Shape, mesh, cache_dir: str, name: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """Mesh ``shape`` with the ``drone.mesh`` settings (a MeshConfig), through the cache; a mesh
+    made (not read from the cache) is a logged phase, named by ``name`` (the drone's)."""
     planes = list(mesh.mirror)
     layers = int(mesh.layers)
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
@@ -99,6 +100,14 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str) -> tuple[np.ndarray, np.ndarr
                             f"{', '.join(bad)} do not mirror onto themselves")
 
     def make() -> dict[str, np.ndarray]:
+        from sdexp.log import Phase
+        how = "layered" if layers else "fTetWild" if shape.dim == 3 else "Triangle"
+        with Phase(f"meshing {name or f'a {shape.dim}D shape'} ({how}, edge {mesh.edge_length:g} m)") as phase:
+            made = _make()
+            phase.close(f"{len(made['elems']):,} elements, {len(made['points']):,} nodes")
+        return made
+
+    def _make() -> dict[str, np.ndarray]:
         if layers:
             from sdexp.sim.mesh.mirror import AXES, reflect_all
             try:
@@ -157,7 +166,7 @@ def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatch
 def build_drone(cfg, cache_dir: str, element: str) -> Drone:
     """cfg is the ``drone`` config node (validated); ``element``: ``sim.element``."""
     shape = make_shape(cfg)
-    points, elems = mesh_shape(shape, cfg.mesh, cache_dir)
+    points, elems = mesh_shape(shape, cfg.mesh, cache_dir, cfg.name)
     return assemble_drone(cfg, shape, points, elems, element)
 
 

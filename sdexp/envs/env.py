@@ -1,0 +1,131 @@
+"""``SoftDroneEnv``: one soft drone and one task as a Gymnasium environment.
+
+The step is the one ``sdexp.control.rollout.fly`` takes for the paper's controllers, so an agent
+and ours (``sdexp.envs.policy.OursPolicy``) are compared on equal terms:
+
+  observation  (x, x_goal) as float32: x = (s, s_dot, e, e_dot, p, p_dot), the decomposed state
+               of the IMU readings (``sdexp.sensing.decompose``, with the configured sensor
+               noise), and the task's goal state at the same time; never mesh internals;
+  action       rotor thrusts, Box[-Tmax, Tmax]^m; the simulator applies them after the configured
+               output delay and rotor noise (noise: paper by default, ``noise.enabled=false`` off);
+  reward       exp(-c) in (0, 1] per control step, c = |p - p_goal|^2 / POSITION_SCALE^2 +
+               |e - e_goal|^2 / ANGLE_SCALE^2 + |s - s_goal|^2 / ANGLE_SCALE^2 (noise-free state,
+               angles wrapped): bounded and positive, so ending a flight early never pays;
+  terminated   a simulator blow-up, a non-finite action, or the loss-of-control rule of every
+               sdexp flight (``rollout.LossOfControl``, config ``flight``): tilt past 90 deg or
+               10 m out of the arena; ``info["failure"]`` says which, as a flight's metrics do;
+  truncated    after the task's duration (``task.seconds / sim.control_dt`` steps).
+
+``reset(seed=...)`` seeds the sensor and rotor noise and the effects' random draws, so an episode
+repeats exactly; ``reset()`` without a seed draws the next episode's seed from the env's
+generator (one seeded reset fixes all that follow).
+"""
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from sdexp.control.rollout import LossOfControl
+from sdexp.control.tasks import Task, wrap_angle
+from sdexp.sensing import decompose
+
+POSITION_SCALE = 1.0    # m: an error of 1 m costs a factor e in the step's reward
+ANGLE_SCALE = 0.5       # rad (29 deg), for the attitude and the bend angles alike
+
+
+class SoftDroneEnv(gym.Env):
+    metadata = {"render_modes": []}
+
+    def __init__(self, drone: str = "rod", task: str = "hover", overrides=None, config=None, **task_kw):
+        """``overrides``: Hydra overrides of the sdexp config (a list of ``key=value`` strings or
+        a mapping), e.g. ``{"noise.enabled": False, "sim.element": "linear"}``; ``config``: an
+        already composed typed config instead (``drone`` and ``overrides`` then unused).
+        ``task_kw``: the task's numbers (sdexp.envs.tasks.make_task: seconds, start, target,
+        velocity; the deform task's angle_deg, settle_seconds, ramp_seconds, hold_seconds)."""
+        from sdexp.envs.config import compose_config
+        from sdexp.envs.tasks import make_task
+        from sdexp.sim.drone import build_drone
+        from sdexp.sim.simulator import Simulator
+
+        self.cfg = config if config is not None else compose_config(drone, overrides)
+        cfg = self.cfg
+        self.drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
+        layout = self.drone.layout
+        self.task: Task = make_task(task, layout.dim, layout.n_s, **task_kw)
+        self.task_name = task
+        self.sim = Simulator(self.drone, cfg.sim, cfg.noise, seed=int(cfg.seed))
+        self.limits = cfg.flight
+        self.dt = float(cfg.sim.control_dt)
+        self.max_steps = int(round(self.task.seconds / self.dt))
+        self.max_thrust = float(self.drone.max_thrust)
+        self.n = 2 * (layout.n_s + layout.n_e + layout.dim)
+        # the blocks of x, in the order of State.x (sdexp.model.dynamics uses the same)
+        sizes = {"s": layout.n_s, "s_dot": layout.n_s, "e": layout.n_e, "e_dot": layout.n_e,
+                 "p": layout.dim, "p_dot": layout.dim}
+        ends = np.cumsum([0, *sizes.values()])
+        self.slices = {k: slice(int(a), int(b)) for k, a, b in zip(sizes, ends[:-1], ends[1:])}
+        tmax = np.float32(self.max_thrust)
+        self.action_space = gym.spaces.Box(-tmax, tmax, (self.drone.num_rotors,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (2 * self.n,), np.float32)
+        self._lost = LossOfControl(self.task, self.limits)
+        self._k = 0
+
+    # -------------------------------------------------------------------------------- the API
+    def reset(self, *, seed: int | None = None, options=None):
+        super().reset(seed=seed)
+        episode_seed = int(self.np_random.integers(2 ** 63))
+        sim = self.sim
+        sim.rng = np.random.default_rng(episode_seed)
+        sim.seed = episode_seed    # the effects' draws: seeded by (sim.seed, flight 0)
+        sim.reset(flight=0)
+        # released at rest where its *measured* position is the task's start, as fly() does
+        readings = sim.reset(position=self.task.start - sim.state(noisy=False).p, flight=0)
+        self._k = 0
+        return self._observe(readings), self._info(None)
+
+    def step(self, action):
+        u = np.asarray(action, dtype=float).reshape(self.action_space.shape)
+        failure = None
+        if not np.all(np.isfinite(u)):
+            failure = "controller: non-finite command"
+            readings = self.sim.readings()
+        else:
+            readings = self.sim.step(np.clip(u, -self.max_thrust, self.max_thrust))
+            if not self.sim.alive:
+                failure = f"simulator: {self.sim.failure.reason}"
+        self._k += 1
+        state = self.sim.state(noisy=False)
+        if failure is None:
+            failure = self._lost.check(state)
+        obs = self._observe(readings)
+        reward = 0.0 if failure is not None and failure.startswith(("controller", "simulator")) \
+            else self._reward(state.x)
+        truncated = failure is None and self._k >= self.max_steps
+        return obs, reward, failure is not None, truncated, self._info(failure, state.x)
+
+    # -------------------------------------------------------------------------------- helpers
+    @property
+    def t(self) -> float:
+        return self.sim.t
+
+    def goal(self) -> np.ndarray:
+        return self.task.goal(self.sim.t).x
+
+    def _observe(self, readings) -> np.ndarray:
+        x = decompose(readings, self.drone.layout).x
+        return np.concatenate([x, self.goal()]).astype(np.float32)
+
+    def _error(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        g, sl = self.goal(), self.slices
+        return {"p": x[sl["p"]] - g[sl["p"]], "e": wrap_angle(x[sl["e"]] - g[sl["e"]]),
+                "s": wrap_angle(x[sl["s"]] - g[sl["s"]])}
+
+    def _reward(self, x: np.ndarray) -> float:
+        err = self._error(x)
+        cost = (err["p"] @ err["p"]) / POSITION_SCALE ** 2 + (err["e"] @ err["e"] + err["s"] @ err["s"]) / ANGLE_SCALE ** 2
+        return float(np.exp(-cost))
+
+    def _info(self, failure: str | None, x: np.ndarray | None = None) -> dict:
+        x = self.sim.state(noisy=False).x if x is None else x
+        return {"t": float(self.sim.t), "failure": failure or "",
+                "position_error": float(np.linalg.norm(self._error(x)["p"]))}

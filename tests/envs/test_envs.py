@@ -1,0 +1,164 @@
+"""The soft drones as Gymnasium environments (sdexp.envs): the checker on every task of the cheap
+drones (every registered env: -m slow), reproducible resets, the loss-of-control rule, truncation
+at the task's duration, vector envs, ours as a policy that flies in the env exactly as fly() flies
+it, and bad keywords as one-line errors."""
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import sdexp.envs
+from sdexp.envs.tasks import TASKS
+from sdexp.errors import UserError
+from tests.eval.references import SHRUNK
+
+CHEAP = ("rod", "engine")   # 2D, under 100 quadratic triangles: milliseconds a step
+
+
+def make(env_id, cache_dir, *overrides, **kw):
+    return gym.make(env_id, overrides=[f"cache_dir={cache_dir}", *overrides], **kw)
+
+
+def checked(env):
+    with warnings.catch_warnings():
+        # the checker's advice, not failures: thrusts are in newtons (the issue's Box[-Tmax, Tmax])
+        # and the decomposed state has no finite bounds
+        warnings.filterwarnings("ignore", message=".*symmetric and normalized space.*")
+        warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value.*")
+        check_env(env.unwrapped, skip_render_check=True)
+
+
+def test_every_drone_and_task_is_registered():
+    from sdexp import conf
+    ids = sdexp.envs.env_ids()
+    assert len(ids) == len(conf.names("drone")) * len(TASKS) == 48
+    assert {"sdexp/Rod-Hover-v0", "sdexp/Flower-Reach-v0", "sdexp/OrangePeel-Deform-v0",
+            "sdexp/Star-Velocity-v0"} <= set(ids) <= set(gym.registry)
+
+
+@pytest.mark.parametrize("drone", CHEAP)
+@pytest.mark.parametrize("task", TASKS)
+def test_the_checker_passes_on_the_cheap_drones(drone, task, cache_dir):
+    checked(make(sdexp.envs.env_id(drone, task), cache_dir))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", sorted(sdexp.envs.env_ids()))
+def test_the_checker_passes_on_every_registered_env(env_id, cache_dir):
+    checked(make(env_id, cache_dir))
+
+
+def test_spaces_are_the_decomposed_state_and_the_thrusts(cache_dir):
+    env = make("sdexp/Rod-Hover-v0", cache_dir)
+    base = env.unwrapped
+    n = 2 * (8 + 1 + 2)                              # (s, e, p) and rates: 8 bends, 1 angle, 2D position
+    assert env.observation_space.shape == (2 * n,) and base.n == n
+    assert env.action_space.shape == (5,) and np.all(env.action_space.high == 10.0)
+    obs, info = env.reset(seed=0)
+    assert np.allclose(obs[base.slices["p"]], 0.0, atol=0.05)      # released at the task's start (noisy)
+    assert np.array_equal(obs[n:], base.task.goal(0.0).x.astype(np.float32))
+
+
+def test_a_seeded_reset_repeats_the_episode_and_seeds_differ(cache_dir):
+    env = make("sdexp/Rod-Hover-v0", cache_dir)
+    actions = np.random.default_rng(0).uniform(-10, 10, (20, 5)).astype(np.float32)
+
+    def episode(seed):
+        obs = [env.reset(seed=seed)[0]]
+        obs += [env.step(a)[0] for a in actions]
+        return np.array(obs)
+    a, b, c = episode(3), episode(3), episode(4)
+    assert np.array_equal(a, b) and not np.allclose(a, c)        # the sensor noise is the seed's
+
+
+def test_the_episode_is_truncated_at_the_tasks_duration(cache_dir):
+    env = make("sdexp/Rod-Hover-v0", cache_dir, seconds=0.05)
+    env.reset(seed=0)
+    hover = np.full(5, 9.81 / 5, np.float32)
+    flags = [env.step(hover)[2:4] for _ in range(5)]
+    assert flags == [(False, False)] * 4 + [(False, True)]
+
+
+def test_a_flip_terminates_by_the_loss_of_control_rule(cache_dir):
+    env = make("sdexp/Rod-Hover-v0", cache_dir, "flight.max_tilt_deg=20")
+    env.reset(seed=0)
+    lopsided = np.array([10, 10, 0, -10, -10], np.float32)    # a torque that rolls the rod over
+    for k in range(300):
+        _, reward, terminated, truncated, info = env.step(lopsided)
+        if terminated:
+            break
+    assert terminated and not truncated and info["failure"].startswith("loss_of_control: tilt")
+    assert 0 < reward <= 1
+
+
+def test_the_task_keywords_shape_the_goal(cache_dir):
+    reach = make("sdexp/Rod-Reach-v0", cache_dir).unwrapped
+    assert np.allclose(reach.task.target, [3, 3]) and reach.max_steps == 2000
+    vel = make("sdexp/Rod-Velocity-v0", cache_dir, velocity=[1.0, 0.0], seconds=2).unwrapped
+    assert np.allclose(vel.task.goal(2.0).p, [2, 0]) and vel.max_steps == 200
+    deform = make("sdexp/Rod-Deform-v0", cache_dir, angle_deg=10).unwrapped
+    assert deform.task.seconds == 17 and np.isclose(np.rad2deg(deform.task.bend(7.0)).max(), 10)
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"task_kw": {"angle_deg": 5}, "env": "sdexp/Rod-Hover-v0"}, "'angle_deg' does not apply to the hover task"),
+    ({"task_kw": {"target": [1, 2, 3]}, "env": "sdexp/Rod-Reach-v0"}, r"target = \[1, 2, 3\]: allowed 2 finite numbers"),
+    ({"task_kw": {"seconds": -1}, "env": "sdexp/Rod-Hover-v0"}, "seconds = -1.0 is out of range: allowed > 0"),
+    ({"task_kw": {"overrides": ["drone.youngs_modulus=-3"]}, "env": "sdexp/Rod-Hover-v0"}, "drone.youngs_modulus"),
+    ({"task_kw": {"overrides": ["sim.elemnt=linear"]}, "env": "sdexp/Rod-Hover-v0"}, "sim.elemnt"),
+])
+def test_bad_keywords_are_one_line_errors(kw, message, cache_dir):
+    with pytest.raises(UserError, match=message) as err:
+        gym.make(kw["env"], **kw["task_kw"])
+    assert "\n" not in str(err.value)
+
+
+def test_vector_envs_step_in_sync_and_in_processes(cache_dir):
+    for mode in ("sync", "async"):
+        envs = gym.make_vec("sdexp/Rod-Hover-v0", num_envs=2, vectorization_mode=mode,
+                            overrides=[f"cache_dir={cache_dir}"], seconds=0.03)
+        obs, _ = envs.reset(seed=[1, 2])
+        assert obs.shape == (2, 44) and not np.allclose(obs[0], obs[1])
+        for _ in range(3):
+            obs, reward, terminated, truncated, info = envs.step(np.full((2, 5), 1.962, np.float32))
+        assert list(truncated) == [True, True] and reward.shape == (2,)   # and auto-reset next step
+        envs.close()
+
+
+def test_ours_flies_in_the_env_as_fly_flies_it(cache_dir):
+    """Noise off, so that both are deterministic: the env's episode under OursPolicy ends where
+    sdexp's own flight loop (control.rollout.fly) ends the same task, to the float32 of the
+    observation."""
+    from sdexp.envs.policy import OursPolicy
+    from sdexp.eval.flights import Setup
+    overrides = [*SHRUNK[1:], f"cache_dir={cache_dir}", "noise.enabled=false"]
+    env = gym.make("sdexp/Rod-Reach-v0", overrides=overrides, seconds=0.3, target=[1, 1])
+    policy = OursPolicy(env, progress=False)
+    obs, _ = env.reset(seed=0)
+    policy.reset()
+    done, rewards = False, []
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        rewards.append(reward)
+        done = terminated or truncated
+    assert truncated and len(rewards) == 30
+    base = env.unwrapped
+    setup = Setup(base.cfg, progress=False)
+    sim = setup.simulator()
+    flight, m = setup.fly(sim, setup.controller("ours", sim), setup.task([0, 0], [1, 1], 0.3))
+    assert info["position_error"] == pytest.approx(m["final_error"], abs=1e-5)
+    assert np.allclose(base.sim.state(noisy=False).x, flight.x[-1], atol=1e-5)
+    # predict(), Stable-Baselines3's signature, is the same controller
+    obs, _ = env.reset(seed=0)
+    first, _ = policy.predict(obs[None], episode_start=np.array([True]))
+    policy.reset()
+    assert np.array_equal(first[0], policy(obs))
+
+
+def test_the_benchmark_reports_steps_per_second_on_one_and_two_cores(cache_dir):
+    from sdexp.envs.bench import main
+    (row,) = main(["--drones", "rod", "--steps", "20", "--override", f"cache_dir={cache_dir}"])
+    assert row["env"] == "sdexp/Rod-Hover-v0"
+    assert row["steps_per_s_1_core"] > 0 and row["steps_per_s_2_cores"] > 0    # timings: never asserted
