@@ -154,6 +154,8 @@ class ControlConfig:
     velocity_scale: float = 1.0     # Q on a rate = this x Q on its angle/position
     q_p_axes: Optional[List[float]] = None   # Q on position (and velocity) per axis = q_p x these (x, y[, z]);
                                              # null: q_p on every axis (the paper)
+    q_e_axes: Optional[List[float]] = None   # Q on the Euler angles (and rates) = q_e x these (3D: e_x, e_y = yaw
+                                             # about the up axis, e_z; 2D: one); null: q_e on each (the paper)
     r: float = 2.0
     kp: float = 0.03
     kd: float = 0.0001
@@ -491,6 +493,9 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
     _check(c.q_p_axes is None or (len(c.q_p_axes) == cfg.drone.dim and all(v > 0 for v in c.q_p_axes)),
            "control.q_p_axes", c.q_p_axes, f"null or {cfg.drone.dim} numbers > 0 (one per axis of drone {cfg.drone.name})")
+    n_e = 3 if cfg.drone.dim == 3 else 1
+    _check(c.q_e_axes is None or (len(c.q_e_axes) == n_e and all(v > 0 for v in c.q_e_axes)),
+           "control.q_e_axes", c.q_e_axes, f"null or {n_e} numbers > 0 (one per Euler angle of drone {cfg.drone.name})")
     _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
     _check(c.kd >= 0, "control.kd", c.kd, ">= 0")
     _check(c.waypoint_max is None or c.waypoint_max > 0, "control.waypoint_max", c.waypoint_max, "> 0 or null")

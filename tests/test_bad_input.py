@@ -68,6 +68,7 @@ def rejected(*overrides) -> str:
     ("control.waypoint_max=0", "control.waypoint_max", "> 0 or null"),
     ("control.q_p_axes=[1,1]", "control.q_p_axes", "3 numbers > 0"),
     ("control.q_p_axes=[1,1,-2]", "control.q_p_axes", "one per axis"),
+    ("control.q_e_axes=[1,1]", "control.q_e_axes", "one per Euler angle"),
     ("control.q_e=inf", "control.q_e", "> 0"),
     ("control.kp=nan", "control.kp", "in [0, 1]"),
     ("noise.delay=-0.01", "noise.delay", ">= 0"),

@@ -123,12 +123,15 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: flo
 
 
 def state_weights(sizes: dict[str, int], q_s: float, q_e: float, q_p: float, velocity_scale: float,
-                  q_p_axes=None) -> np.ndarray:
+                  q_p_axes=None, q_e_axes=None) -> np.ndarray:
     """Diagonal of Q over (s, s_dot, e, e_dot, p, p_dot): the supplement's gains for s, e and p,
-    their rates weighted ``velocity_scale`` times as much; ``q_p_axes`` (one factor per axis)
-    weighs the position axes apart, e.g. Z held tighter than the direction of travel."""
-    axes = np.ones(sizes["dim"]) if q_p_axes is None else np.asarray(q_p_axes, dtype=float)
+    their rates weighted ``velocity_scale`` times as much; ``q_p_axes`` and ``q_e_axes`` (one
+    factor per axis / Euler angle) weigh the components apart, e.g. Z held tighter than the
+    direction of travel, or yaw left loose where the rotors can hardly turn the body about its
+    up axis (counter-rotating pairs, no reaction torque)."""
+    def per(n: int, axes) -> np.ndarray:
+        return np.ones(n) if axes is None else np.asarray(axes, dtype=float)
     parts = []
-    for gain in (np.full(sizes["n_s"], float(q_s)), np.full(sizes["n_e"], float(q_e)), q_p * axes):
+    for gain in (np.full(sizes["n_s"], float(q_s)), q_e * per(sizes["n_e"], q_e_axes), q_p * per(sizes["dim"], q_p_axes)):
         parts += [gain, gain * velocity_scale]
     return np.concatenate(parts)

@@ -37,7 +37,7 @@ def riccati_step(cfg) -> float | None:
 
 def ours(cfg, dyn, max_thrust: float, **kw) -> RelinearizingLQR:
     c = cfg.control
-    q = state_weights(state_sizes_of(dyn), c.q_s, c.q_e, c.q_p, c.velocity_scale, c.q_p_axes)
+    q = state_weights(state_sizes_of(dyn), c.q_s, c.q_e, c.q_p, c.velocity_scale, c.q_p_axes, c.q_e_axes)
     return RelinearizingLQR(dyn, q, c.r, c.kp, c.kd, c.n, max_thrust, dt=riccati_step(cfg),
                             feedforward=bool(c.feedforward), waypoint_max=c.waypoint_max, **kw)
 

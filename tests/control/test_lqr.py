@@ -206,6 +206,9 @@ def test_state_weights_follow_the_state_layout():
     # Z held ten times tighter than X and Y, its velocity too
     qz = state_weights({"n_s": 1, "n_e": 3, "dim": 3}, 1.0, 2.0, 3.0, 0.5, q_p_axes=[1, 1, 10])
     np.testing.assert_array_equal(qz[-6:], [3, 3, 30, 1.5, 1.5, 15])
+    # yaw (e_y, about the up axis) left loose
+    qy = state_weights({"n_s": 1, "n_e": 3, "dim": 3}, 1.0, 2.0, 3.0, 0.5, q_e_axes=[1, 0.01, 1])
+    np.testing.assert_allclose(qy[2:8], [2, 0.02, 2, 1, 0.01, 1])
 
 
 def test_sampled_gain_approaches_the_continuous_one_and_stays_stable_where_it_does_not():
