@@ -277,7 +277,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     if (config.get("sim") or {}).get("element") != "quadratic":
         return [], [(claim, "", "", NOT_RUN, "")]
     table = pd.read_csv(folder / "fleet.csv")
-    physics = pd.read_csv(folder / "physics.csv").groupby("drone", sort=False).first()
+    physics = pd.read_csv(folder / "physics.csv").groupby("drone", sort=False).mean(numeric_only=True)
     params = config["experiment"]["params"]
     tasks, seeds = list(params["tasks"]), len(params["seeds"])
     drones = list(dict.fromkeys(table["drone"]))
@@ -288,9 +288,11 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
              "median error of those (hover, reach: final position error; velocity: velocity error rms; deform: bend "
              "rms), and the rigid LQR's survivors. **Bold**: flies (every seed survives, median within the task's "
              "tolerance). Physics of each body, apart from any controller: thrust-to-weight, the fold the rigid hover "
-             "thrust holds open loop (2 s), and the nets' validation error against copying the velocity (d / g / h).\n",
-             "| drone | " + " | ".join(tasks) + " | thrust/weight | hover fold (deg) | nets' error d / g / h |",
-             "| --- | " + " | ".join("---" for _ in tasks) + " | --- | --- | --- |"]
+             "thrust holds open loop (2 s); the learned model: the nets' validation error against copying the velocity "
+             "(d / g / h), and at release under hover thrust, where the truth is no acceleration, the linear "
+             "acceleration it predicts (m/s^2, mean over seeds).\n",
+             "| drone | " + " | ".join(tasks) + " | thrust/weight | hover fold (deg) | nets' error d / g / h | model's accel. at hover |",
+             "| --- | " + " | ".join("---" for _ in tasks) + " | --- | --- | --- | --- |"]
     for drone in drones:
         row = []
         for task in tasks:
@@ -306,9 +308,10 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
                 text += f" (rigid {int(rigid['survived'].astype(bool).sum())}/{seeds})"
             row.append(text)
         ph = physics.loc[drone] if drone in physics.index else None
-        phys = ["-"] * 3 if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]) else [
+        phys = ["-"] * 4 if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]) else [
             f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}",
-            " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh")]
+            " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh"),
+            f"{ph.get('model_accel_at_hover', float('nan')):.1f}"]
         lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(phys) + " |")
     lines += ["", f"The fleet's wall time: {json.loads((folder / 'metrics.json').read_text())['wall_seconds'] / 3600:.1f} h "
               "on 2 cores. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
