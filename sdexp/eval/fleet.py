@@ -261,8 +261,7 @@ def _order(names: list[str], seeds: list[int]) -> list[tuple[str, int]]:
 
 
 def run(run: Run) -> dict:
-    from tqdm import tqdm
-
+    from sdexp.log import Phase
     from sdexp.parallel import run_spawned
     from sdexp.sim.drone import drone_names
 
@@ -284,7 +283,7 @@ def run(run: Run) -> dict:
     if results:
         log.info(f"sdexp: fleet: resuming with {len(results)} of {len(results) + len(todo)} jobs done")
     t0 = time.perf_counter()
-    with tqdm(total=len(todo), desc="fleet jobs (drone x seed)", unit="job", disable=None) as bar:
+    with Phase("fleet jobs (drone x seed)", total=len(todo), unit="job") as bar:
         workers = max(1, min(int(p.workers), len(todo)))
         if workers == 1:
             done = [fly_job(*job, report=bar.update) for job in todo]
@@ -298,6 +297,10 @@ def run(run: Run) -> dict:
     for res in ordered:
         if res["error"]:
             log.warning(f"sdexp: fleet: {res['drone']} seed {res['seed']} did not fly: {res['error']}")
+        else:
+            ok = sum(r["survived"] for r in res["rows"])
+            log.info(f"sdexp: fleet: {res['drone']} seed {res['seed']}: {res['samples']} transitions, "
+                     f"{ok} of {len(res['rows'])} flights survived, job {res['seconds'].get('total', 0.0):.0f} s")
     table = fleet_table(ordered)
     physics = physics_table(ordered)
     run.table(table, "fleet")
