@@ -291,8 +291,8 @@ def run(run: Run) -> dict:
             done = run_spawned(fly_job, todo, workers, bar.update)
     for res in done:
         results[(res["drone"], res["seed"])] = res
-    wall = time.perf_counter() - t0
     _fill_model_diagnostics(cfg, p, results)
+    calls = _invocations(out_dir, time.perf_counter() - t0, len(done))
     ordered = [results[(n, s)] for n in names for s in p.seeds]
     for res in ordered:
         if res["error"]:
@@ -306,12 +306,25 @@ def run(run: Run) -> dict:
     run.table(table, "fleet")
     run.table(physics, "physics")
     fleet_plot(table, names, list(p.tasks), list(p.controllers), out_dir / "fleet.png", len(p.seeds))
-    out = {"wall_seconds": wall, "job_seconds": float(sum(r["seconds"].get("total", 0.0) for r in done)),
+    out = {"wall_seconds": float(sum(c["wall_seconds"] for c in calls)), "invocations": len(calls),
+           "job_seconds": float(sum(r["seconds"].get("total", 0.0) for r in ordered)),
            "jobs": len(ordered), "jobs_run": len(done), "jobs_failed": sum(bool(r["error"]) for r in ordered)}
     for (drone, task, ctl), grp in table.groupby(["drone", "task", "controller"]):
         out[f"{drone}_{task}_{ctl}_survived"] = int(grp["survived"].sum())
         out[f"{drone}_{task}_{ctl}_{grp['primary'].iloc[0]}_median"] = float(grp["primary_value"].median())
     return out
+
+
+def _invocations(out_dir: Path, wall: float, jobs_run: int) -> list[dict]:
+    """The run's invocations so far, this one appended (``invocations.json``): a resumed fleet's
+    wall time is the sum of its invocations', not the last one's."""
+    from sdexp.cache import atomic_write
+
+    path = out_dir / "invocations.json"
+    calls = json.loads(path.read_text()) if path.exists() else []
+    calls.append({"wall_seconds": wall, "jobs_run": jobs_run})
+    atomic_write(path, lambda tmp: tmp.write_text(json.dumps(calls, indent=1)))
+    return calls
 
 
 def _fill_model_diagnostics(cfg, p: FleetParams, results: dict) -> None:

@@ -44,6 +44,7 @@ def test_an_interrupted_fleet_resumes_with_the_jobs_it_has(tmp_path, cache_dir):
     (tmp_path / "jobs" / "engine_seed0.json").unlink()   # ... with the engine's job unfinished
     again = run_experiment(reduced(cache_dir), tmp_path)
     assert first["jobs_run"] == 2 and again["jobs_run"] == 1
+    assert again["invocations"] == 2 and again["wall_seconds"] > first["wall_seconds"]   # both calls' wall time
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "fleet.csv"), before)   # flights repeat bit for bit
 
 
