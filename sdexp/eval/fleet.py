@@ -134,30 +134,21 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
     all, the thrust patterns left to deform the body, and the nets' validation error (mean
     absolute error of the predicted velocity change over that of copying the velocity: 1 = no
     better than "no change")."""
-    from sdexp.config import NoiseConfig
-    from sdexp.sensing import decompose
     from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
-    from sdexp.sim.simulator import Simulator
+    from sdexp.sim.rigid.statics import hold_state
 
     fem, g, tmax = drone.fem, float(sim_cfg.gravity), float(drone.max_thrust)
     mass, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
     W = wrench_matrix(pos, dirs)
     level = [1, 3, 5] if W.shape[0] == 6 else [1, 2]
     hover = rest_hover_thrust(drone, g)
-    sim = Simulator(drone, replace(sim_cfg, obstacles=[]), NoiseConfig(enabled=False), seed=0)
-    r = sim.reset()
-    p0 = decompose(r, drone.layout).p
-    for _ in range(int(round(hold_seconds / float(sim_cfg.control_dt)))):
-        r = sim.step(hover)
-        if not sim.alive:
-            break
-    st = decompose(r, drone.layout)
+    first, st, sane = hold_state(drone, sim_cfg, hover, hold_seconds)
     out = {"mass_kg": float(mass), "rotors": int(len(hover)), "sensors": int(drone.layout.n_s),
            "thrust_to_weight": float(len(hover) * tmax / (mass * g)),
            "hover_thrust_max_share": float(np.abs(hover).max() / tmax),
            "hover_fold_deg": float(np.rad2deg(np.abs(st.s)).max()) if st.s.size else 0.0,
-           "hover_drop_m": float(p0[1] - st.p[1]),
-           "hover_hold_blew_up": (not sim.alive),
+           "hover_drop_m": float(first.p[1] - st.p[1]),
+           "hover_hold_blew_up": not sane,
            "lift_tilt_rank": int(np.linalg.matrix_rank(W[level])), "lift_tilt_needed": len(level),
            "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1])}
     if trained is not None:

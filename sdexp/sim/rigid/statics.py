@@ -30,15 +30,22 @@ def outer_rotors(drone, along_z: bool = False) -> np.ndarray:
     return mask
 
 
-def hold(drone, sim_cfg, u: np.ndarray, seconds: float) -> np.ndarray:
-    """Bend angles s (rad) after holding thrust ``u`` for ``seconds`` from rest, noise-free."""
+def hold_state(drone, sim_cfg, u: np.ndarray, seconds: float):
+    """(decomposed state at release, after holding thrust ``u`` for ``seconds`` from rest, whether
+    the simulation stayed sane), noise-free."""
     sim = Simulator(drone, replace(sim_cfg, obstacles=[]), NoiseConfig(enabled=False), seed=0)
     r = sim.reset()
+    first = decompose(r, drone.layout)
     for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
         r = sim.step(u)
         if not sim.alive:
             break
-    return decompose(r, drone.layout).s
+    return first, decompose(r, drone.layout), sim.alive
+
+
+def hold(drone, sim_cfg, u: np.ndarray, seconds: float) -> np.ndarray:
+    """Bend angles s (rad) after holding thrust ``u`` for ``seconds`` from rest, noise-free."""
+    return hold_state(drone, sim_cfg, u, seconds)[1].s
 
 
 def held_bend(drone, sim_cfg, rotors: np.ndarray, amplitude: float | None = None,
