@@ -88,9 +88,9 @@ class DroneConfig:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     params: Dict[str, float] = field(default_factory=dict)  # shape-specific proportions
     # drone.mesh.file only (sdexp.sim.mesh.shapes.from_file): positions in metres (after mesh.scale)
-    rotors: List[List[float]] = field(default_factory=list)         # snapped onto the nearest surface facing ...
-    rotor_normals: List[List[float]] = field(default_factory=list)  # ... these thrust directions ([]: +Y)
-    imus: List[List[float]] = field(default_factory=list)           # peripheral IMUs, the order of s ([]: the rule)
+    rotors: List[Any] = field(default_factory=list)         # snapped onto the nearest surface facing ...
+    rotor_normals: List[Any] = field(default_factory=list)  # ... these thrust directions ([]: +Y)
+    imus: List[Any] = field(default_factory=list)           # peripheral IMUs, the order of s ([]: the rule)
 
 
 @dataclass
@@ -285,11 +285,9 @@ def register() -> None:
     # second get different folders (sdexp.eval.experiments.claim guards any folder reused)
     if not OmegaConf.has_resolver("sdexp.pid"):
         OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
-    # ${sdexp.count:drone.rotors} in conf/drone/custom.yaml: as many rotors as it lists; 0 while the
-    # list is unset, so that check_complete names the list rather than this interpolation
+    # ${sdexp.count:drone.rotors} in conf/drone/custom.yaml: as many rotors as drone.rotors lists
     if not OmegaConf.has_resolver("sdexp.count"):
-        OmegaConf.register_new_resolver(
-            "sdexp.count", lambda key, *, _root_: len(OmegaConf.select(_root_, key, throw_on_missing=False) or []))
+        OmegaConf.register_new_resolver("sdexp.count", lambda key, *, _root_: len(OmegaConf.select(_root_, key) or []))
 
 
 def _nonfinite(value: Any) -> bool:
@@ -505,9 +503,12 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(d.damping >= 0, "drone.damping", d.damping, ">= 0 1/s")
     _check(d.deformation_damping >= 0, "drone.deformation_damping", d.deformation_damping, ">= 0 1/s")
     _check(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
-    _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
     _check(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
+    if d.shape == "file" and d.mesh.file is None:   # drone=custom as it stands: the template
+        raise UserError(f"drone.mesh.file has no value: drone {d.name} is made from a mesh file, e.g. "
+                        "drone.mesh.file=body.stl 'drone.rotors=[[x,y,z],...]' (README, Your own drone)")
     if d.mesh.file is None:
+        _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
         _check(len(d.size) == d.dim, "drone.size", list(d.size), f"{d.dim} positive lengths")
         _check(all(x > 0 for x in d.size), "drone.size", list(d.size), "all lengths > 0")
         for key in ("rotors", "rotor_normals", "imus"):

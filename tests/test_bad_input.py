@@ -410,7 +410,7 @@ ON_RING = "drone.rotors=[[1.25,0.1,0],[-1.25,0.1,0],[0,0.1,1.25]]"
 
 @pytest.mark.parametrize("overrides, words", [
     ("drone=custom", ["drone.mesh.file has no value"]),
-    ("drone=custom drone.mesh.file=box.stl", ["drone.rotors has no value"]),
+    ("drone=custom drone.mesh.file=box.stl", ["drone.rotors lists 0", "at least 3 rotors"]),
     (f"drone=custom drone.mesh.file=none.stl {ON_BOX}", ["drone.mesh.file = 'none.stl': no such file", "STL, OBJ"]),
     (f"drone=custom drone.mesh.file=junk.stl {ON_BOX}", ["drone.mesh.file = junk.stl: cannot read it", "STL, OBJ"]),
     (f"drone=custom drone.mesh.file=open.stl {ON_BOX}", ["drone.mesh.file = open.stl: the surface is not closed"]),

@@ -113,7 +113,7 @@ def test_2d_outlines_from_text_lines_and_triangle_meshes_agree(tmp_path):
 @pytest.mark.parametrize("spoil, words", [
     (lambda v, f: (v, f[1:]), "not closed"),
     (lambda v, f: (v, np.r_[f[:1, [0, 2, 1]], f[1:]]), "not consistently oriented"),
-    (lambda v, f: (v * [1, 0, 1], f), "zero volume"),
+    (lambda v, f: (v, np.array([[0, 1, 3], [0, 3, 1]])), "zero volume"),   # closed, but flat: a sheet
 ])
 def test_a_surface_that_bounds_no_solid_is_refused(tmp_path, spoil, words):
     v, f = spoil(*box())

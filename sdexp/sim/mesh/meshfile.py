@@ -10,6 +10,7 @@ something else without a word.
 from __future__ import annotations
 
 import functools
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -67,7 +68,9 @@ def _read(path: str, mtime: int, dim: int, scale: float) -> Body:
         return _outline(name, ring * scale, np.c_[k, (k + 1) % len(k)])
     import meshio
     try:
-        mesh = meshio.read(path)
+        with warnings.catch_warnings():   # meshio's binary-STL size test overflows on an ASCII STL, harmlessly
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mesh = meshio.read(path)
     except Exception as err:   # meshio raises many kinds (ReadError, ValueError, KeyError, ...)
         raise UserError(f"{KEY} = {name}: cannot read it ({one_line(err)}); give a mesh in {FORMATS}"
                         + (f" or 'x y' rows ({', '.join(TEXT_SUFFIXES)})" if dim == 2 else "")) from None
