@@ -203,3 +203,24 @@ def test_a_ring_whose_centre_is_a_hole_cannot_place_its_frame_imu(tmp_path):
     with pytest.raises(UserError, match="the placement rule puts the frame IMU") as info:
         make_file_shape(drone_cfg(path, rotors))
     assert "drone.imus" in str(info.value)
+
+
+def test_the_tripod_config_validates_and_its_caches_follow_the_file_content(tmp_path, monkeypatch):
+    import hashlib
+    import shutil
+
+    from sdexp.config import mesh_path, validate
+    from sdexp.eval.experiments import typed
+    from tests.test_cli import make_cfg
+    cfg = make_cfg("drone=tripod")
+    validate(cfg)
+    shipped = typed(cfg).drone.mesh.digest
+    assert shipped == hashlib.sha256(mesh_path("tripod.stl").read_bytes()).hexdigest()[:16]
+    # the same name in the working directory, other bytes: another digest, so other cache keys
+    monkeypatch.chdir(tmp_path)
+    v, f = box()
+    meshio.write(tmp_path / "tripod.stl", meshio.Mesh(v, [("triangle", f)]))
+    assert typed(make_cfg("drone=tripod")).drone.mesh.digest not in (None, shipped)
+    shutil.copy(tmp_path / "tripod.stl", tmp_path / "copy.stl")
+    assert typed(make_cfg("drone=tripod", "drone.mesh.file=copy.stl")).drone.mesh.digest == \
+        typed(make_cfg("drone=tripod")).drone.mesh.digest   # a renamed copy shares them
