@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import hashlib
 import math
 import os
 import typing
 from dataclasses import dataclass, field
+from importlib.resources import files
+from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -28,6 +31,21 @@ ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp
 NOT_KEY = {"key": False}
 
 
+def mesh_path(path: str) -> Path | None:
+    """Where ``drone.mesh.file = path`` is: a relative path in the working directory, else in
+    sdexp's drone configs (the shipped example's mesh, so ``drone=tripod`` runs from any folder);
+    None when in neither."""
+    for p in mesh_path_candidates(path):
+        if p.is_file():
+            return p
+    return None
+
+
+def mesh_path_candidates(path: str) -> list[Path]:
+    given = Path(path).expanduser()
+    return [given] if given.is_absolute() else [Path.cwd() / given, Path(str(files("sdexp.conf"))) / "drone" / given]
+
+
 @dataclass
 class MeshConfig:
     edge_length: float = 0.2   # target element edge length (m); the resolution knob
@@ -37,6 +55,17 @@ class MeshConfig:
                                                      # (sdexp.sim.mesh.mirror); [] = mesh the whole body
     layers: int = 0            # 3D: 0 = fTetWild tetrahedralises the closed surface; n >= 1 = the outline
                                # triangulated and extruded through the thickness in n layers (no slivers)
+    # A drone of one's own (sdexp.sim.mesh.meshfile): a closed surface or a tet mesh (3D), a closed
+    # outline or a triangle mesh (2D), in any format meshio reads; null = the shape generator. Its
+    # name is not part of the cache keys: its content is (digest), so an edited file is remeshed.
+    file: Optional[str] = field(default=None, metadata=NOT_KEY)
+    scale: float = 1.0         # the file's unit in metres (0.001: the file is in millimetres)
+    digest: Optional[str] = None  # sha256 of the file's bytes, filled in when the config is read; not an input
+
+    def __post_init__(self) -> None:
+        # OmegaConf.to_object constructs this: every typed config of a file drone carries its digest
+        path = mesh_path(self.file) if self.file is not None else None
+        self.digest = None if path is None else hashlib.sha256(path.read_bytes()).hexdigest()[:16]
 
 
 @dataclass
@@ -58,6 +87,10 @@ class DroneConfig:
     imu_radius: float = 0.12           # radius of the vertex patch an IMU is bound to (m)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     params: Dict[str, float] = field(default_factory=dict)  # shape-specific proportions
+    # drone.mesh.file only (sdexp.sim.mesh.shapes.from_file): positions in metres (after mesh.scale)
+    rotors: List[Any] = field(default_factory=list)         # snapped onto the nearest surface facing ...
+    rotor_normals: List[Any] = field(default_factory=list)  # ... these thrust directions ([]: +Y)
+    imus: List[Any] = field(default_factory=list)           # peripheral IMUs, the order of s ([]: the rule)
 
 
 @dataclass
@@ -258,6 +291,9 @@ def register() -> None:
     # second get different folders (sdexp.eval.experiments.claim guards any folder reused)
     if not OmegaConf.has_resolver("sdexp.pid"):
         OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
+    # ${sdexp.count:drone.rotors} in conf/drone/custom.yaml: as many rotors as drone.rotors lists
+    if not OmegaConf.has_resolver("sdexp.count"):
+        OmegaConf.register_new_resolver("sdexp.count", lambda key, *, _root_: len(OmegaConf.select(_root_, key) or []))
 
 
 def _nonfinite(value: Any) -> bool:
@@ -406,6 +442,54 @@ def check_design(cfg) -> None:
                         f"allowed 0 to {sensors} peripheral IMUs (supplement B)")
 
 
+# A drone from a mesh file, longest side (m): sdexp's drones span 1.1-8 m; far outside this
+# range the file's unit is not the one drone.mesh.scale says (mm read as m is 1000x).
+FILE_EXTENT = (0.05, 50.0)
+MIN_ROTORS = {2: 2, 3: 3}   # thrust and the tilt(s): one rotor per controlled degree of freedom
+
+
+def check_file_drone(d) -> tuple[list[float], int | None]:
+    """The checks of a drone from drone.mesh.file before anything is meshed (the file is read:
+    sdexp.sim.mesh.meshfile): its listed rotors and IMUs, its scale, its size. Returns the
+    body's bounding lengths and, for a volume mesh given as such, its element count."""
+    def need(ok: bool, message: str) -> None:
+        if not ok:
+            raise UserError(message)
+
+    _check(d.mesh.scale > 0, "drone.mesh.scale", d.mesh.scale, "> 0 (the file's unit in metres)")
+    need(not d.mesh.mirror and d.mesh.layers == 0, "drone.mesh.mirror and drone.mesh.layers: allowed [] and 0 for a "
+         "drone from drone.mesh.file (fTetWild or Triangle meshes the file's body whole)")
+    dims = f"[x, y{', z' if d.dim == 3 else ''}]"
+    for key in ("rotors", "rotor_normals", "imus"):
+        rows = [list(r) for r in getattr(d, key)]
+        need(all(len(r) == d.dim for r in rows), f"drone.{key} = {rows}: allowed {dims} rows ({d.dim}D drone)")
+    need(len(d.rotors) >= MIN_ROTORS[d.dim], f"drone.rotors lists {len(d.rotors)}: a {d.dim}D drone needs at least "
+         f"{MIN_ROTORS[d.dim]} rotors (its thrust and its tilt" + (" about two axes)" if d.dim == 3 else ")"))
+    need(len(d.rotors) == d.num_rotors, f"drone.num_rotors = {d.num_rotors} but drone.rotors lists "
+         f"{len(d.rotors)}: allowed {len(d.rotors)}")
+    need(not d.rotor_normals or len(d.rotor_normals) == len(d.rotors), f"drone.rotor_normals lists "
+         f"{len(d.rotor_normals)}: allowed [] (+Y) or one per rotor ({len(d.rotors)})")
+    need(all(any(x != 0 for x in r) for r in d.rotor_normals), "drone.rotor_normals: allowed non-zero directions")
+    need(not d.imus or len(d.imus) == d.num_sensors, f"drone.imus lists {len(d.imus)}: allowed [] (the placement "
+         f"rule) or one per peripheral IMU (drone.num_sensors = {d.num_sensors})")
+    from sdexp.sim.mesh.meshfile import read_body
+    body = read_body(d.mesh.file, d.dim, d.mesh.scale)
+    size = [float(x) for x in body.extent]
+    lo, hi = FILE_EXTENT
+    need(lo <= max(size) <= hi, f"drone.mesh.scale = {d.mesh.scale:g} makes the body of {d.mesh.file} "
+         f"{max(size):.4g} m across: allowed {lo:g} to {hi:g} m (0.001 reads a file in millimetres)")
+    need(not list(d.size) or (len(d.size) == d.dim and all(abs(a - b) <= 0.01 * b for a, b in zip(d.size, size))),
+         f"drone.size = {list(d.size)}: allowed [] for a drone from drone.mesh.file (its size is the file's, "
+         f"{[round(x, 4) for x in size]} m)")
+    if body.elems is not None:
+        need(len(body.elems) <= MAX_ELEMENTS, f"drone.mesh.file = {d.mesh.file}: a volume mesh of "
+             f"{len(body.elems):,} elements; allowed at most about {MAX_ELEMENTS:,}")
+    # rotors and IMUs onto the body now, not after the run folder and the mesh are made (numpy only)
+    from sdexp.sim.mesh.shapes.from_file import make_file_shape
+    make_file_shape(d)
+    return size, None if body.elems is None else len(body.elems)
+
+
 def validate(cfg: DictConfig | Config) -> None:
     """Raise UserError naming the first key whose value is outside its physical range."""
     if not isinstance(cfg, DictConfig):
@@ -419,29 +503,38 @@ def validate(cfg: DictConfig | Config) -> None:
         raise UserError(f"{key}: {one_line(err)}" if key else one_line(err)) from None
     d, s, n = cfg.drone, cfg.sim, cfg.noise
     _check(d.dim in (2, 3), "drone.dim", d.dim, "2 or 3")
-    _check(len(d.size) == d.dim, "drone.size", list(d.size), f"{d.dim} positive lengths")
-    _check(all(x > 0 for x in d.size), "drone.size", list(d.size), "all lengths > 0")
     _check(d.mass > 0, "drone.mass", d.mass, "> 0 kg")
     _check(d.youngs_modulus > 0, "drone.youngs_modulus", d.youngs_modulus, "> 0 Pa")
     _check(0 < d.poisson_ratio < 0.5, "drone.poisson_ratio", d.poisson_ratio, "in (0, 0.5)")
     _check(d.damping >= 0, "drone.damping", d.damping, ">= 0 1/s")
     _check(d.deformation_damping >= 0, "drone.deformation_damping", d.deformation_damping, ">= 0 1/s")
     _check(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
-    _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
     _check(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
-    check_design(d)
+    if d.shape == "file" and d.mesh.file is None:   # drone=custom as it stands: the template
+        raise UserError(f"drone.mesh.file has no value: drone {d.name} is made from a mesh file, e.g. "
+                        "drone.mesh.file=body.stl 'drone.rotors=[[x,y,z],...]' (README, Your own drone)")
+    if d.mesh.file is None:
+        _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
+        _check(len(d.size) == d.dim, "drone.size", list(d.size), f"{d.dim} positive lengths")
+        _check(all(x > 0 for x in d.size), "drone.size", list(d.size), "all lengths > 0")
+        for key in ("rotors", "rotor_normals", "imus"):
+            _check(not getattr(d, key), f"drone.{key}", list(getattr(d, key)),
+                   "[] unless drone.mesh.file is set (the built-in shapes place their own)")
+        check_design(d)
     _check(d.thickness is None or d.thickness > 0, "drone.thickness", d.thickness, "> 0 m")
     _check(d.rotor_radius > 0, "drone.rotor_radius", d.rotor_radius, "> 0 m")
     _check(d.imu_radius > 0, "drone.imu_radius", d.imu_radius, "> 0 m")
-    longest = max(float(x) for x in d.size)
-    box = math.prod(float(x) for x in d.size)
+    size, given = (list(d.size), None) if d.mesh.file is None else check_file_drone(d)
+    longest = max(float(x) for x in size)
+    box = math.prod(float(x) for x in size)
     # elements in the bounding box at this edge length: regular tets (edge^3 / 6 sqrt 2) or triangles
     unit = 1 / (6 * math.sqrt(2)) if d.dim == 3 else math.sqrt(3) / 4
     finest = (box / (unit * MAX_ELEMENTS)) ** (1 / d.dim)
     coarsest = longest / MIN_ELEMENTS_ALONG
-    _check(finest <= d.mesh.edge_length <= coarsest, "drone.mesh.edge_length", d.mesh.edge_length,
-           f"in [{finest:.3g}, {coarsest:.3g}] m for this {d.name} (at least {MIN_ELEMENTS_ALONG} elements "
-           f"along its {longest:g} m, at most about {MAX_ELEMENTS:,} elements)")
+    if given is None:   # a volume mesh given as such is not meshed: its own count is checked
+        _check(finest <= d.mesh.edge_length <= coarsest, "drone.mesh.edge_length", d.mesh.edge_length,
+               f"in [{finest:.3g}, {coarsest:.3g}] m for this {d.name} (at least {MIN_ELEMENTS_ALONG} elements "
+               f"along its {longest:g} m, at most about {MAX_ELEMENTS:,} elements)")
     _check(d.mesh.stop_energy > 0, "drone.mesh.stop_energy", d.mesh.stop_energy, "> 0")
     _check(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
                                  and set(d.mesh.mirror) <= {"x", "z"}),

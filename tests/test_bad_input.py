@@ -387,3 +387,63 @@ def test_an_unknown_design_param_is_an_error_before_anything_is_written(tmp_path
         run_experiment(make_cfg("experiment=gallery", "experiment.params.drones=[flower]",
                                 "+drone.params.petal_widht=0.5"), tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+# ------------------------------------------------------------------ a drone of one's own (drone.mesh.file)
+
+@pytest.fixture
+def box_stl(tmp_path):
+    """A closed 2 x 0.2 x 1 m box in metres, and the same box with one triangle missing."""
+    import meshio
+    import numpy as np
+
+    from tests.sim.test_meshfile import box, extruded, circle
+    v, f = box()
+    meshio.write(tmp_path / "box.stl", meshio.Mesh(v, [("triangle", f)]))
+    meshio.write(tmp_path / "open.stl", meshio.Mesh(v, [("triangle", f[1:])]))
+    (tmp_path / "junk.stl").write_bytes(b"\x00\x01 not a mesh")
+    v, f = extruded([circle(1.5), circle(1.0, cw=True)], holes=[(0.0, 0.0)])
+    meshio.write(tmp_path / "ring.stl", meshio.Mesh(v, [("triangle", f)]))
+    np.savetxt(tmp_path / "square.txt", [[0, 0], [2, 0], [2, 1], [0, 1]])
+    return tmp_path
+
+
+ON_BOX = "drone.rotors=[[-0.8,0.1,0],[0.8,0.1,0],[0,0.1,0.4]]"
+ON_RING = "drone.rotors=[[1.25,0.1,0],[-1.25,0.1,0],[0,0.1,1.25]]"
+
+
+@pytest.mark.parametrize("overrides, words", [
+    ("drone=custom", ["drone.mesh.file has no value"]),
+    ("drone=custom drone.mesh.file=box.stl", ["drone.rotors lists 0", "at least 3 rotors"]),
+    (f"drone=custom drone.mesh.file=none.stl {ON_BOX}", ["drone.mesh.file = 'none.stl': no such file", "STL, OBJ"]),
+    (f"drone=custom drone.mesh.file=junk.stl {ON_BOX}", ["drone.mesh.file = junk.stl: cannot read it", "STL, OBJ"]),
+    (f"drone=custom drone.mesh.file=open.stl {ON_BOX}", ["drone.mesh.file = open.stl: the surface is not closed"]),
+    (f"drone=custom drone.mesh.file=box.stl drone.mesh.scale=1000 {ON_BOX}",
+     ["drone.mesh.scale = 1000 makes the body of box.stl 2000 m across", "allowed 0.05 to 50 m"]),
+    (f"drone=custom drone.mesh.file=box.stl drone.mesh.scale=0 {ON_BOX}", ["drone.mesh.scale", "> 0"]),
+    (f"drone=custom drone.mesh.file=box.stl drone.mesh.edge_length=0.001 {ON_BOX}",
+     ["drone.mesh.edge_length", "at most about 300,000 elements"]),
+    (f"drone=custom drone.mesh.file=box.stl drone.mesh.layers=2 {ON_BOX}", ["drone.mesh.layers", "[] and 0"]),
+    ("drone=custom drone.mesh.file=box.stl drone.rotors=[[-0.8,0.1,0],[0.8,0.1,0]]",
+     ["drone.rotors lists 2", "at least 3 rotors"]),
+    ("drone=custom drone.dim=2 drone.mesh.file=square.txt drone.rotors=[[1,1]]", ["drone.rotors lists 1", "at least 2"]),
+    (f"drone=custom drone.mesh.file=box.stl drone.num_rotors=4 {ON_BOX}", ["drone.num_rotors = 4", "allowed 3"]),
+    (f"drone=custom drone.mesh.file=box.stl {ON_BOX} drone.rotor_normals=[[0,1,0]]",
+     ["drone.rotor_normals lists 1", "one per rotor (3)"]),
+    ("drone=custom drone.mesh.file=box.stl drone.rotors=[[-0.8,0.1,0],[0.8,0.1,0],[0,0.1,3]]",
+     ["drone.rotors[2] = [0.0, 0.1, 3.0] is off the body of box.stl", "within drone.rotor_radius"]),
+    (f"drone=custom drone.mesh.file=ring.stl {ON_RING}", ["drone.num_sensors = 3", "frame IMU", "drone.imus"]),
+    (f"drone=flower drone.mesh.file=box.stl {ON_BOX} drone.num_rotors=3",
+     ["drone.size = [3.6, 0.225, 3.6]", "allowed [] for a drone from drone.mesh.file"]),
+    ("drone=flower drone.rotors=[[0,0.1,0]]", ["drone.rotors", "[] unless drone.mesh.file is set"]),
+])
+def test_a_drone_from_a_bad_mesh_file_is_one_clear_error(box_stl, monkeypatch, overrides, words):
+    monkeypatch.chdir(box_stl)   # relative files are read from the working directory
+    message = rejected(*overrides.split())
+    assert all(w in message for w in words), message
+
+
+def test_a_missing_mesh_file_on_the_command_line_is_one_line_and_writes_nothing(tmp_path):
+    res = sdexp("drone=custom", "drone.mesh.file=none.stl", ON_BOX, cwd=tmp_path)
+    assert_one_line_error(res, "drone.mesh.file = 'none.stl': no such file", "STL, OBJ")
+    assert list(tmp_path.iterdir()) == []

@@ -33,6 +33,13 @@ def names(group: str) -> list[str]:
     return sorted(f.name[:-len(".yaml")] for f in _file(group).iterdir() if f.name.endswith(".yaml"))
 
 
+def paper_drones() -> list[str]:
+    """The paper's twelve drones: the drone configs made by a shape generator. The others
+    (``shape: file``: custom, the template, and tripod, the example) are drones of one's own,
+    flown by name; the experiments and environments that run "every drone" run these."""
+    return [n for n in names("drone") if read("drone", n).get("shape") != "file"]
+
+
 def drone(name: str):
     """conf/drone/<name>.yaml as a DroneConfig (the experiments that run several drones)."""
     from sdexp.config import DroneConfig

@@ -26,7 +26,7 @@ def env_id(drone: str, task: str) -> str:
 
 def env_ids() -> dict[str, tuple[str, str]]:
     """Every registered id -> (drone, task)."""
-    return {env_id(d, t): (d, t) for d in conf.names("drone") for t in TASKS}
+    return {env_id(d, t): (d, t) for d in conf.paper_drones() for t in TASKS}
 
 
 def register() -> None:

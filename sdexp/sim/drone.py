@@ -60,10 +60,13 @@ class Drone:
 
 
 def drone_names() -> list[str]:
-    return conf.names("drone")
+    return conf.paper_drones()
 
 
 def make_shape(cfg) -> Shape:
+    if cfg.mesh.file is not None:   # a drone of one's own: the file replaces the shape generator
+        from sdexp.sim.mesh.shapes.from_file import make_file_shape
+        return make_file_shape(cfg)
     from sdexp.sim.mesh.shapes import SHAPES
     if cfg.shape not in SHAPES:
         raise UserError(f"drone.shape = {cfg.shape!r} is unknown: choose one of {sorted(SHAPES)}")
@@ -85,7 +88,11 @@ def make_shape(cfg) -> Shape:
 
 def mesh_shape(shape: Shape, mesh, cache_dir: str, name: str = "") -> tuple[np.ndarray, np.ndarray]:
     """Mesh ``shape`` with the ``drone.mesh`` settings (a MeshConfig), through the cache; a mesh
-    made (not read from the cache) is a logged phase, named by ``name`` (the drone's)."""
+    made (not read from the cache) is a logged phase, named by ``name`` (the drone's). A volume
+    mesh the shape brings (a file of tets) is used as it is."""
+    if shape.volume_mesh is not None:
+        points, elems = shape.volume_mesh
+        return points, elems.astype(np.int32)
     planes = list(mesh.mirror)
     layers = int(mesh.layers)
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),

@@ -31,3 +31,5 @@ class Shape:
     cell_surface: Optional[Callable[[tuple], tuple]] = None
     # 3D plates: (edge, layers, mirror axes) -> (points, tets) extruded through the thickness
     layered_mesh: Optional[Callable[[float, int, tuple], tuple]] = None
+    # a volume mesh (points, elements) given as such (drone.mesh.file of tets): used as it is
+    volume_mesh: Optional[tuple] = None

@@ -42,3 +42,23 @@ def patch_faces(points: np.ndarray, faces: np.ndarray, anchor: np.ndarray, norma
         cand = np.flatnonzero(side)
         pick = cand[[np.argmin(dist[cand])]] if len(cand) else np.array([], dtype=int)
     return pick
+
+
+def enclosed_volume(points: np.ndarray, faces: np.ndarray) -> float:
+    """Signed volume (3D) or area (2D) a closed boundary encloses: > 0 when it faces outward."""
+    return float(_moments(points, faces)[0])
+
+
+def enclosed_centroid(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Centroid of the solid (3D) or region (2D) a closed, outward boundary encloses."""
+    size, first = _moments(points, faces)
+    return first / size
+
+
+def _moments(points: np.ndarray, faces: np.ndarray) -> tuple[float, np.ndarray]:
+    """Volume and first moment by the divergence theorem: a signed simplex from the origin to
+    each face (a tet in 3D, a triangle in 2D), its centroid at its corners' mean."""
+    corners = points[faces]                            # (m, dim, dim)
+    size = np.linalg.det(corners) / (6.0 if faces.shape[1] == 3 else 2.0)
+    centroid = corners.sum(axis=1) / (faces.shape[1] + 1)
+    return size.sum(), (size[:, None] * centroid).sum(axis=0)

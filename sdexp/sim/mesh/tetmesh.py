@@ -61,10 +61,10 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
     if not pinned:
         warnings.warn("could not pin std::random_device inside this pytetwild build: the "
                       "tet mesh differs from run to run", RuntimeWarning, stacklevel=2)
-    return _clean(points, tets)
+    return clean_tets(points, tets)
 
 
-def _clean(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def clean_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Orient every tet positively, drop flat ones and unreferenced points."""
     points = np.asarray(points, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)

@@ -20,6 +20,7 @@ import numpy as np
 
 from sdexp.sim.mesh.placement import tree_imus
 from sdexp.sim.mesh.shape import Shape
+from sdexp.sim.mesh.surface import enclosed_centroid
 
 # Sensor-tree root radius (m): merges a rotor right above the centre with the root, as the rod's
 # middle rotor is, instead of making it a node with a near-zero edge.
@@ -120,12 +121,6 @@ def _segments(rings):
     return np.vstack(vertices).astype(float), np.vstack(segments).astype(np.int32)
 
 
-def _centroid(vertices, segments):
-    a, b = vertices[segments[:, 0]], vertices[segments[:, 1]]
-    cross = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
-    return ((a + b) * cross[:, None]).sum(axis=0) / (3.0 * cross.sum())
-
-
 def _upper_exits(vertices, segments, x):
     """Where the vertical line at x leaves the body upwards: sorted heights and outward normals.
 
@@ -151,7 +146,7 @@ def _upper_exits(vertices, segments, x):
     return [(y, n / np.linalg.norm(n)) for y, n in exits]
 
 
-def _lift(vertices, segments, points):
+def lift(vertices, segments, points):
     """Move each point along +Y to the top of the body column it is in (or the nearest one
     below it when it is above the body) and return those points with their outward normals."""
     out, normals = [], []
@@ -202,14 +197,14 @@ def _generator(name: str, defaults: dict, outline: Callable) -> Callable[..., Sh
         holes = (np.asarray(hole_points, dtype=float).reshape(-1, 2) - mid) * scale
         rotor_x = (np.asarray(rotor_x, dtype=float) - mid[0]) * scale[0]
         # From above the drone: rotors go on the topmost boundary at their x.
-        rotors, rotor_normals = _lift(vertices, segments, [(x, np.inf) for x in rotor_x])
-        center = _centroid(vertices, segments)
+        rotors, rotor_normals = lift(vertices, segments, [(x, np.inf) for x in rotor_x])
+        center = enclosed_centroid(vertices, segments)
         try:
             tree = tree_imus(center, rotors, int(num_sensors), p["root_radius"])
         except ValueError as err:
             raise ValueError(f"{name}: cannot place num_sensors = {num_sensors}: {err}") from None
-        imus, imu_normals = _lift(vertices, segments, tree)
-        frame_imus, frame_normals = _lift(vertices, segments, center[None])
+        imus, imu_normals = lift(vertices, segments, tree)
+        frame_imus, frame_normals = lift(vertices, segments, center[None])
         return Shape(dim=2, vertices=vertices, faces=segments, holes=holes, center=center,
                      rotors=rotors, rotor_normals=rotor_normals, imus=imus,
                      imu_normals=imu_normals, frame_imus=frame_imus, frame_normals=frame_normals)
@@ -290,7 +285,7 @@ def _diamond(lx, ly, n, p):
     holes = np.zeros((0, 2))
     if p["hole_size"] > 0:
         # Centred on the outline's centroid, so the window leaves the centre where it was.
-        cx, cy = _centroid(*_segments([outer]))
+        cx, cy = enclosed_centroid(*_segments([outer]))
         hw, hh = p["hole_size"] * lx / 2, p["hole_size"] * ly / 2
         hole = np.array([(cx, cy + hh), (cx + hw, cy), (cx, cy - hh), (cx - hw, cy)])
         # Keep a rim at least half the window's size: the window grown by half stays inside.

@@ -1,0 +1,86 @@
+"""A drone of one's own: its body from ``drone.mesh.file``, its rotors where ``drone.rotors``
+lists them, its IMUs by the placement rule (supplement D) unless ``drone.imus`` lists them.
+
+Rotors are snapped onto the nearest surface facing their normal (``drone.rotor_normals``,
+default +Y), which is how the built-in drones' rotors sit: on the surface, pushing along its
+normal. The root of the sensor tree is the body's centroid; the frame IMU sits on the upper
+surface straight above it, and the rule's IMUs straight above their tree points, as for the
+built-in drones.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sdexp.errors import UserError
+from sdexp.sim.mesh.meshfile import read_body
+from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.shape import Shape
+from sdexp.sim.mesh.shapes.shapes2d import lift as lift2
+from sdexp.sim.mesh.snap import lift3, patch_normal, snap
+from sdexp.sim.mesh.surface import enclosed_centroid
+
+
+def _listed(cfg, key: str, values, normals, radius: float, body) -> tuple[np.ndarray, np.ndarray]:
+    up = np.eye(body.dim)[1]
+    values = [[float(x) for x in p] for p in values]     # config lists (ListConfig in validate())
+    normals = [[float(x) for x in n] for n in normals]
+    anchors, out = [], []
+    for k, p in enumerate(values):
+        n = np.asarray(normals[k]) if normals else up
+        n = n / np.linalg.norm(n)
+        anchor, normal, dist = snap(body.vertices, body.faces, np.asarray(p), n, radius)
+        if dist > radius:
+            where = "no surface faces that way" if not np.isfinite(dist) else f"the nearest surface facing " \
+                f"{n.round(3).tolist()} is {dist:.3g} m away"
+            raise UserError(f"drone.{key}[{k}] = {p} is off the body of {cfg.mesh.file}: {where}; "
+                            f"allowed within drone.{'imu' if key == 'imus' else 'rotor'}_radius = {radius:g} m of its surface")
+        anchors.append(anchor)
+        out.append(n if normals else normal)   # a listed normal is the thrust direction as given
+    return np.array(anchors).reshape(-1, body.dim), np.array(out).reshape(-1, body.dim)
+
+
+def _lifted(body, planar: np.ndarray, what: str, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """Planar points (x, z) / (x, y) straight up onto the upper surface, with its normals."""
+    planar = np.atleast_2d(planar)
+    if body.dim == 2:
+        try:
+            return lift2(body.vertices, body.faces, planar)
+        except ValueError:
+            bad = planar[:, 0].round(3).tolist()
+    else:
+        points = [lift3(body.vertices, body.faces, q) for q in planar]
+        if all(p is not None for p in points):
+            up = np.array([0.0, 1.0, 0.0])
+            normals = [patch_normal(body.vertices, body.faces, p, up, cfg.imu_radius) for p in points]
+            return np.array(points), np.array(normals)
+        bad = [q.round(3).tolist() for q, p in zip(planar, points) if p is None]
+    raise UserError(f"drone.num_sensors = {cfg.num_sensors}: the placement rule puts the {what} at {bad}, "
+                    f"where {cfg.mesh.file} has no upper surface; list them in drone.imus "
+                    f"(positions on the body) or change drone.rotors")
+
+
+def make_file_shape(cfg) -> Shape:
+    """The Shape of a drone from a mesh file (cfg: a validated DroneConfig with drone.mesh.file)."""
+    body = read_body(cfg.mesh.file, cfg.dim, cfg.mesh.scale)
+    rotors, rotor_normals = _listed(cfg, "rotors", cfg.rotors, cfg.rotor_normals, cfg.rotor_radius, body)
+    if cfg.dim == 3 and np.linalg.matrix_rank(rotors[1:] - rotors[0], tol=1e-3 * body.extent.max()) < 2:
+        raise UserError(f"drone.rotors = {np.round(rotors, 3).tolist()} lie on one line: a 3D drone needs three "
+                        "not in a line, or it cannot hold its attitude")
+    center = enclosed_centroid(body.vertices, body.faces)
+    planar = [0, 2] if cfg.dim == 3 else [0]
+    frame, frame_normals = _lifted(body, center[None][:, planar] if cfg.dim == 3 else center[None],
+                                   "frame IMU (over the centroid)", cfg)
+    if cfg.imus:
+        imus, imu_normals = _listed(cfg, "imus", cfg.imus, [], cfg.imu_radius, body)
+    elif cfg.num_sensors:
+        try:
+            tree = tree_imus(center, rotors, int(cfg.num_sensors), root_radius=float(cfg.rotor_radius))
+        except ValueError as err:
+            raise UserError(f"drone.num_sensors = {cfg.num_sensors}: {err}; list them in drone.imus") from None
+        imus, imu_normals = _lifted(body, tree, "peripheral IMUs", cfg)
+    else:
+        imus, imu_normals = np.zeros((0, cfg.dim)), np.zeros((0, cfg.dim))
+    return Shape(dim=cfg.dim, vertices=body.vertices, faces=body.faces, holes=body.holes, center=center,
+                 rotors=rotors, rotor_normals=rotor_normals, imus=imus, imu_normals=imu_normals,
+                 frame_imus=frame, frame_normals=frame_normals,
+                 volume_mesh=None if body.elems is None else (body.vertices, body.elems))

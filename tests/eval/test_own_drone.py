@@ -1,0 +1,28 @@
+"""A drone of one's own flies: the shipped example (drone=tripod, an STL made by
+examples/make_tripod.py) identified from tiny data and held up by ours, reduced as the other
+control experiments are (tests/eval/references.py's SHRUNK: 800 samples, 2 epochs).
+
+Open (issue 27): with that model ours does not hold the tripod up. Measured here: a 1 s hover
+was lost at 0.44 s, and after 0.3 s it was 0.42 m off, about the 0.44 m of a free fall. So the
+test is a strict xfail, recording that; the next step is the smallest data and training that
+hold it up (more samples, data.around_hover), then drop the mark."""
+import numpy as np
+import pytest
+
+from sdexp.eval.experiments import run_experiment
+from tests.eval.references import SHRUNK
+from tests.test_cli import make_cfg
+
+SECONDS = 0.3
+
+
+@pytest.mark.xfail(strict=True, reason="SHRUNK's 800-sample model does not hold the tripod up yet (issue 27)")
+def test_ours_holds_the_tripod_up_from_its_stl(tmp_path, cache_dir):
+    cfg = make_cfg(*SHRUNK[1:], "drone=tripod", f"cache_dir={cache_dir}", "experiment=sota",
+                   f"experiment.params.seconds={SECONDS}", "experiment.params.start=[0,0,0]",
+                   "experiment.params.target=[0,0,0]", "experiment.params.controllers=[ours]",
+                   "experiment.params.animate=[]")
+    m = run_experiment(cfg, tmp_path)
+    # it stays up: with its rotors off it would fall g t^2 / 2 = 0.44 m in this time
+    assert m["ours_survival_time"] >= SECONDS - 1e-9
+    assert np.isfinite(m["ours_final_error"]) and m["ours_final_error"] < 0.5 * 9.81 * SECONDS ** 2 / 2
