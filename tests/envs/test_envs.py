@@ -33,7 +33,7 @@ def checked(env):
 def test_every_drone_and_task_is_registered():
     from sdexp import conf
     ids = sdexp.envs.env_ids()
-    assert len(ids) == len(conf.names("drone")) * len(TASKS) == 48
+    assert len(ids) == len(conf.paper_drones()) * len(TASKS) == 48
     assert {"sdexp/Rod-Hover-v0", "sdexp/Flower-Reach-v0", "sdexp/OrangePeel-Deform-v0",
             "sdexp/Star-Velocity-v0"} <= set(ids) <= set(gym.registry)
 
