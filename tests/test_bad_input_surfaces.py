@@ -1,0 +1,112 @@
+"""Bad input on the surfaces beside the experiments (issue 26): the paper report, a sweep's report,
+the launchers, a full disk, rejected runs. As in test_bad_input.py: every case is one line naming
+the key, file or path and what is allowed, exit code 2, no traceback, and nothing left behind."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from sdexp.errors import EXIT_USER_ERROR, UserError
+from tests.test_bad_input import assert_one_line_error, sdexp
+
+
+def run_main(main, argv, capsys):
+    """A module's main() in this process: (exit code, stderr) as a shell would see them."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    return info.value.code, capsys.readouterr().err
+
+
+def assert_one_line(code, err, *words):
+    assert code == EXIT_USER_ERROR, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and err.startswith("sdexp: error: "), err
+    for w in words:
+        assert w in err, err
+
+
+# ------------------------------------------------------------------ python -m sdexp.eval.paper_report
+
+def _sota_run(folder, seed, error=0.1):
+    folder.mkdir(parents=True)
+    metrics = {}
+    for name, ok, t, err in (("ours", True, 20.0, error), ("rigid_lqr", False, 0.3, 5.0)):
+        metrics.update({f"{name}_survival_time": t, f"{name}_survived": ok, f"{name}_final_error": err})
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    (folder / "config.yaml").write_text(yaml.safe_dump(
+        {"seed": seed, "sim": {"element": "quadratic", "threads": 1},
+         "experiment": {"name": "sota", "params": {"start": [0, 0, 0], "target": [3, 3, 3], "seconds": 20.0}}},
+        sort_keys=False))
+    (folder / "sota.csv").write_text("controller,final_error\nours,0.1\nrigid_lqr,5.0\n")
+
+
+@pytest.fixture
+def results(tmp_path):
+    """Three seeds of a complete SOTA result: 'reproduced', 3 of 3."""
+    root = tmp_path / "results"
+    _sota_run(root / "sota", 0)
+    for seed in (1, 2):
+        _sota_run(root / "sota_seeds" / f"seed{seed}", seed)
+    return root
+
+
+def _cut(path, keep):
+    path.write_text(path.read_text()[:keep])
+
+
+@pytest.mark.parametrize("damage, file, words", [
+    (lambda f: _cut(f / "config.yaml", -4), "config.yaml", ["truncated"]),                 # a value cut mid-line
+    (lambda f: _cut(f / "config.yaml", (f / "config.yaml").read_text().index("experiment:")), "config.yaml",
+     ["truncated"]),                                                                          # the last section gone
+    (lambda f: (f / "config.yaml").write_text("seed: [1\n"), "config.yaml", ["not valid YAML"]),
+    (lambda f: (f / "config.yaml").unlink(), "config.yaml", ["is missing"]),
+    (lambda f: (f / "config.yaml").write_text((f / "config.yaml").read_text().replace("name: sota", "name: nsweep")),
+     "config.yaml", ["a run of nsweep, not of sota"]),
+    (lambda f: (f / "metrics.json").unlink(), "metrics.json", ["is missing"]),
+    (lambda f: _cut(f / "metrics.json", 40), "metrics.json", ["not valid JSON"]),
+    (lambda f: (f / "metrics.json").write_text("[1, 2]"), "metrics.json", ["not a mapping"]),
+    (lambda f: (f / "metrics.json").write_text(json.dumps(
+        {k: v for k, v in json.loads((f / "metrics.json").read_text()).items() if k != "ours_final_error"})),
+     "metrics.json", ["has no ours_final_error"]),
+    (lambda f: _cut(f / "sota.csv", -3), "sota.csv", ["truncated"]),
+    (lambda f: (f / "sota.csv").write_text("controller,final_error\nours,0.1\nrigid_lqr\n"), "sota.csv",
+     ["line 3 has 1 fields, its header 2"]),
+    (lambda f: (f / "sota.csv").write_text(""), "sota.csv", ["empty"]),
+])
+def test_the_paper_report_refuses_a_damaged_run_naming_the_file(results, capsys, damage, file, words):
+    from sdexp.eval.paper_report import main
+    damage(results / "sota_seeds" / "seed2")
+    code, err = run_main(main, [str(results)], capsys)
+    assert_one_line(code, err, str(results / "sota_seeds" / "seed2" / file), *words)
+    assert not (results / "REPORT.md").exists() and not list(results.glob(".*tmp"))   # nothing written
+
+
+def test_a_seed_folder_without_its_files_is_refused_not_a_smaller_count(results, capsys):
+    from sdexp.eval.paper_report import main
+    (results / "sota_seeds" / "seed3").mkdir()   # a job that never finished, committed by mistake
+    code, err = run_main(main, [str(results)], capsys)
+    assert_one_line(code, err, "seed3/metrics.json is missing")
+
+
+def test_the_paper_report_lists_the_runs_it_leaves_out(results, capsys):
+    from sdexp.eval.paper_report import main, render
+    assert "3 of 3" in render(results) and "Left out" not in render(results)
+    config = results / "sota_seeds" / "seed2" / "config.yaml"
+    config.write_text(config.read_text().replace("element: quadratic", "element: linear"))
+    text = render(results)
+    assert "survived 2 of 2" in text and "Left out (not on the quadratic simulator): `sota_seeds/seed2`" in text
+    main([str(results)])
+    assert (results / "REPORT.md").read_text() == text
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda p: None, ["does not exist"]),
+    (lambda p: p.write_text("not a folder"), ["is not a folder"]),
+])
+def test_the_paper_report_on_a_missing_folder_or_a_file_is_one_line(tmp_path, make, words):
+    make(tmp_path / "results")
+    res = subprocess.run([sys.executable, "-m", "sdexp.eval.paper_report", str(tmp_path / "results")],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert_one_line(res.returncode, res.stderr, str(tmp_path / "results"), *words)
