@@ -110,3 +110,38 @@ def test_the_paper_report_on_a_missing_folder_or_a_file_is_one_line(tmp_path, ma
     res = subprocess.run([sys.executable, "-m", "sdexp.eval.paper_report", str(tmp_path / "results")],
                          capture_output=True, text=True, cwd=tmp_path)
     assert_one_line(res.returncode, res.stderr, str(tmp_path / "results"), *words)
+
+
+# ------------------------------------------------------------------ sdexp experiment=report
+
+def _job(folder, seed, finished=True):
+    folder.mkdir(parents=True)
+    (folder / "config.yaml").write_text(yaml.safe_dump({"seed": seed, "experiment": {"name": "sota"}}))
+    if finished:
+        (folder / "metrics.json").write_text(json.dumps({"ours_final_error": 0.1 * seed}))
+
+
+@pytest.mark.parametrize("unfinished, words", [
+    (lambda s: _job(s / "seed=2", 2, finished=False), ["1 unfinished job", "seed=2", "remove its folder"]),
+    (lambda s: (s / "seed=2").mkdir() or (s / "seed=2" / "cli.log").write_text("started\n"),
+     ["1 unfinished job", "seed=2"]),                                 # killed before its config was written
+    (lambda s: [_job(s / f"seed={i}", i, finished=False) for i in (2, 3)], ["2 unfinished jobs", "seed=2, seed=3"]),
+])
+def test_a_sweep_with_an_unfinished_job_names_it(tmp_path, unfinished, words):
+    from sdexp.eval.stats import find_jobs
+    sweep = tmp_path / "sweep"
+    for seed in (0, 1):
+        _job(sweep / f"seed={seed}", seed)
+    unfinished(sweep)
+    with pytest.raises(UserError) as info:
+        find_jobs(sweep)
+    assert all(w in str(info.value) for w in [str(sweep), *words]), str(info.value)
+
+
+def test_the_report_command_on_a_sweep_with_an_unfinished_job_is_one_line(tmp_path):
+    sweep = tmp_path / "sweep"
+    _job(sweep / "seed=0", 0)
+    _job(sweep / "seed=1", 1, finished=False)
+    res = sdexp("experiment=report", f"sweep_dir={sweep}", f"hydra.run.dir={tmp_path / 'report'}", cwd=tmp_path)
+    assert_one_line_error(res, "1 unfinished job", "seed=1", "no metrics.json")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sweep"]
