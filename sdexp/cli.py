@@ -96,6 +96,8 @@ def describe(err: BaseException, args: list[str]) -> str:
     match = re.match(r"Could not override '([^']+)'", str(err))
     if match:
         key = match.group(1)
+        if key.startswith("hydra."):
+            return _unknown_hydra_key(key, args)
         schema = unknown_key_error(key)
         if schema is not None:
             return str(schema)
@@ -116,6 +118,32 @@ def _unknown_param(key: str, args: list[str]) -> str:
         defaults = OmegaConf.to_container(conf.read("config").defaults)
         name = next((d["experiment"] for d in defaults if isinstance(d, dict) and "experiment" in d), "?")
     return str(unknown_param_error(key[len("experiment.params."):], PARAMS.get(name), name))
+
+
+def _unknown_hydra_key(key: str, args: list[str]) -> str:
+    """A misspelled hydra.* key (hydra.launcher.njobs): the keys of its parent as composed with the
+    command's own hydra/... choices (the launcher picked), not sdexp's schema, which has no hydra."""
+    import difflib
+
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    parent, _, name = key.rpartition(".")
+    choices = [a for a in args if a.startswith("hydra/")]
+    try:
+        GlobalHydra.instance().clear()
+        with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
+            node = OmegaConf.select(compose("config", overrides=choices, return_hydra_config=True), parent)
+    except Exception:   # noqa: BLE001 - whatever composing raises: the plain message then
+        node = None
+    if not isinstance(node, DictConfig):
+        return f"{key} is not a config key"
+    names = sorted(str(k) for k in node.keys())
+    close = difflib.get_close_matches(name, names, n=1)
+    hint = f" (did you mean {parent}.{close[0]}?)" if close else ""
+    what = f" ({', '.join(choices)})" if choices else ""
+    if parent == "hydra.launcher" and not any(c.startswith("hydra/launcher=") for c in choices):
+        what = " (the basic launcher, which has no settings: choose hydra/launcher=joblib, submitit_local or submitit_slurm)"
+    return f"{key} is not a key of {parent}{what}{hint}: allowed {', '.join(names)}"
 
 
 def main() -> None:

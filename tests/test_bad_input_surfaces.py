@@ -145,3 +145,59 @@ def test_the_report_command_on_a_sweep_with_an_unfinished_job_is_one_line(tmp_pa
     res = sdexp("experiment=report", f"sweep_dir={sweep}", f"hydra.run.dir={tmp_path / 'report'}", cwd=tmp_path)
     assert_one_line_error(res, "1 unfinished job", "seed=1", "no metrics.json")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sweep"]
+
+
+# ------------------------------------------------------------------ sweep launchers
+
+def _launcher(*overrides):
+    from hydra import compose, initialize_config_module
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides), return_hydra_config=True).hydra.launcher
+
+
+@pytest.mark.parametrize("overrides, words", [
+    (["hydra/launcher=joblib", "hydra.launcher.n_jobs=0"], ["hydra.launcher.n_jobs = 0", "a number of jobs >= 1, or -1 to -2"]),
+    (["hydra/launcher=joblib", "hydra.launcher.n_jobs=-5"], ["hydra.launcher.n_jobs = -5", "-1 to -2"]),
+    (["hydra/launcher=joblib", "hydra.launcher.timeout=-3"], ["hydra.launcher.timeout = -3.0", "> 0 seconds"]),
+    (["hydra/launcher=joblib", "hydra.launcher.batch_size=0"], ["hydra.launcher.batch_size = '0'", "'auto' or a whole number"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.tasks_per_node=0"], ["hydra.launcher.tasks_per_node = 0", ">= 1"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=-1"], ["hydra.launcher.timeout_min = -1", "> 0 minutes"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=0"], ["hydra.launcher.timeout_min = 0", "> 0 minutes"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.nodes=0"], ["hydra.launcher.nodes = 0", ">= 1"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.cpus_per_task=0"], ["hydra.launcher.cpus_per_task = 0", ">= 1"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.gpus_per_node=-1"], ["hydra.launcher.gpus_per_node = -1", ">= 0"]),
+    (["hydra/launcher=submitit_slurm", "hydra.launcher.mem_gb=0"], ["hydra.launcher.mem_gb = 0", ">= 1"]),
+])
+def test_launcher_settings_are_checked_before_the_sweep(monkeypatch, overrides, words):
+    from sdexp import launchers, parallel
+    monkeypatch.setattr(parallel, "available_cores", lambda: 2)
+    with pytest.raises(UserError) as info:
+        launchers.check_launcher(_launcher(*overrides))
+    assert all(w in str(info.value) for w in words), str(info.value)
+
+
+def test_good_launcher_settings_pass(monkeypatch):
+    from sdexp import launchers, parallel
+    monkeypatch.setattr(parallel, "available_cores", lambda: 2)
+    for overrides in (["hydra/launcher=joblib"], ["hydra/launcher=joblib", "hydra.launcher.n_jobs=-2"],
+                      ["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10"], []):
+        launchers.check_launcher(_launcher(*overrides))
+
+
+@pytest.mark.parametrize("args, words", [
+    (["hydra/launcher=joblib", "hydra.launcher.n_jobs=0"], ["hydra.launcher.n_jobs = 0", "(-1: all"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.tasks_per_node=0"], ["hydra.launcher.tasks_per_node = 0"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=-1"], ["hydra.launcher.timeout_min = -1"]),
+    (["hydra/launcher=submitit_slurm"], ["submitit_slurm needs Slurm", "sbatch and srun not found", "joblib"]),
+    (["hydra/launcher=joblib", "hydra.launcher.njobs=2"],
+     ["hydra.launcher.njobs is not a key of hydra.launcher (hydra/launcher=joblib)",
+      "did you mean hydra.launcher.n_jobs?", "allowed _target_, backend"]),
+    (["hydra.launcher.njobs=2"], ["hydra.launcher.njobs", "the basic launcher", "hydra/launcher=joblib"]),
+    (["hydra/launcher=submitit_local", "hydra.launcher.timeout=3"], ["did you mean hydra.launcher.timeout_min?"]),
+])
+def test_a_bad_launcher_setting_stops_the_sweep_before_any_job(tmp_path, args, words):
+    env = {**os.environ, "HYDRA_FULL_ERROR": "", "PATH": os.path.dirname(sys.executable)}   # no Slurm here
+    res = subprocess.run([sys.executable, "-m", "sdexp.cli", "-m", "experiment=gallery", "seed=0,1", *args],
+                         capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
+    assert_one_line_error(res, *words)
+    assert list(tmp_path.iterdir()) == []   # no sweep folder, no job folder
