@@ -65,13 +65,19 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     try:
         write(Path(tmp))
         os.replace(tmp, path)
+    except OSError as err:
+        err.filename = str(path)   # the file the caller wrote, not its temporary name
+        raise
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
 def _unwritable(folder: Path, err: OSError):
-    from sdexp.errors import UserError
+    from sdexp.errors import UserError, disk_full
+    full = disk_full(err, folder, "or choose another cache with cache_dir=<folder> or SDEXP_CACHE")
+    if full is not None:
+        return full
     return UserError(f"cache_dir {folder} cannot be written ({err.strerror or err}): "
                      f"choose a writable one with cache_dir=<folder> or SDEXP_CACHE")
 

@@ -48,11 +48,13 @@ def _main(cfg: DictConfig) -> None:
 
 
 def _discard_if_empty(out_dir: Path) -> None:
-    """Hydra creates the run folder (and an empty job log) before the run: a run that stopped on
-    bad input leaves nothing behind."""
+    """Hydra creates the run folder (and the job log) before the run: a run that stopped on bad
+    input leaves nothing behind. A folder left with logs only held no run before this one (a
+    rejected run discards what it wrote, sdexp.eval.experiments.discard; one that resumed keeps its
+    config.yaml): the logs are this run's, and go with it."""
     try:
-        for log in out_dir.glob("*.log"):
-            if log.stat().st_size == 0:
+        if out_dir.is_dir() and all(p.suffix == ".log" and p.is_file() for p in out_dir.iterdir()):
+            for log in out_dir.glob("*.log"):
                 log.unlink()
         cwd = Path.cwd().resolve()
         sweep = Path(HydraConfig.get().sweep.dir).resolve() if HydraConfig.initialized() else None

@@ -201,3 +201,188 @@ def test_a_bad_launcher_setting_stops_the_sweep_before_any_job(tmp_path, args, w
                          capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
     assert_one_line_error(res, *words)
     assert list(tmp_path.iterdir()) == []   # no sweep folder, no job folder
+
+
+# ------------------------------------------------------------------ rejected runs leave nothing
+
+def reject_after_writing(run):
+    """A runner that writes part of its output and then finds bad input (as the discrepancy
+    workflow does with its logs)."""
+    import pandas as pd
+    run.table(pd.DataFrame({"a": [1.0]}), "partial")
+    (run.out_dir / "frames_vtu").mkdir()
+    raise UserError("discrepancy.measured = 'nope' is not a folder")
+
+
+def fill_the_disk(run):
+    """A runner whose table meets a full disk."""
+    import errno
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(run.out_dir / "sota.csv"))
+
+
+def _cfg(*overrides):
+    from tests.test_bad_input import make_cfg
+    return make_cfg("experiment=gallery", "experiment.params.drones=[rod]", *overrides)
+
+
+@pytest.mark.parametrize("runner, words", [
+    ("reject_after_writing", ["discrepancy.measured = 'nope' is not a folder"]),
+    ("fill_the_disk", ["sota.csv", "No space left on device", "MB free there", "hydra.run.dir=<folder>"]),
+])
+def test_a_rejected_run_leaves_nothing_that_blocks_its_corrected_rerun(tmp_path, cache_dir, runner, words):
+    from sdexp.eval.experiments import run_experiment
+    bad = _cfg(f"experiment._target_=tests.test_bad_input_surfaces.{runner}")
+    with pytest.raises(UserError) as info:
+        run_experiment(bad, tmp_path / "run")
+    assert all(w in str(info.value) for w in words), str(info.value)
+    assert list((tmp_path / "run").iterdir()) == []   # no config.yaml, overrides.yaml, partial table
+    metrics = run_experiment(_cfg(), tmp_path / "run")   # the corrected command, same folder
+    assert metrics["rod_elements"] > 0 and (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_a_rejected_resumed_run_keeps_the_earlier_runs_files(tmp_path):
+    from omegaconf import OmegaConf
+    from sdexp.eval.experiments import run_experiment
+    bad = _cfg("experiment._target_=tests.test_bad_input_surfaces.reject_after_writing")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.yaml").write_text(OmegaConf.to_yaml(bad, resolve=True))   # killed earlier
+    with pytest.raises(UserError):
+        run_experiment(bad, tmp_path / "run")
+    assert (tmp_path / "run" / "config.yaml").exists()
+
+
+def test_a_run_rejected_inside_its_runner_leaves_no_folder_on_the_command_line(tmp_path, cache_dir):
+    res = sdexp("experiment=gallery", "experiment.params.drones=[rod]",
+                "experiment._target_=tests.test_bad_input_surfaces.reject_after_writing",
+                f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert_one_line_error(res, "discrepancy.measured = 'nope' is not a folder")
+    assert list(tmp_path.iterdir()) == []   # no cli.log, config.yaml, overrides.yaml
+
+
+# ------------------------------------------------------------------ a full disk
+
+def _enospc(*args, **kwargs):
+    import errno
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def _half_then_full(path_arg=0):
+    """A write that puts half a file down, then finds the disk full."""
+    def write(*args, **kwargs):
+        target = args[path_arg]
+        if hasattr(target, "write"):
+            target.write(b"half a file")
+        else:
+            open(target, "wb").write(b"half a file")
+        _enospc()
+    return write
+
+
+def test_a_full_disk_while_writing_a_cache_entry_names_the_cache(tmp_path, monkeypatch):
+    import numpy as np
+    from sdexp.cache import cached_arrays
+    monkeypatch.setattr(np, "savez", _half_then_full())
+    with pytest.raises(UserError) as info:
+        cached_arrays(tmp_path / "cache", "mesh3d-x", lambda: {"a": np.zeros(3)})
+    msg = str(info.value)
+    assert str(tmp_path / "cache" / "mesh3d-x.npz") in msg and "No space left" in msg and "cache_dir=<folder>" in msg, msg
+    assert [p.name for p in (tmp_path / "cache").iterdir()] == [".locks"]   # no entry, no temporary file
+
+
+def test_a_full_disk_while_writing_a_data_chunk_leaves_no_half_chunk(tmp_path, monkeypatch):
+    import numpy as np
+    from sdexp.model import dataset
+    monkeypatch.setattr(np, "savez", _half_then_full())
+    path = tmp_path / "data-x" / "chunk-00002.npz"
+    with pytest.raises(OSError) as info:
+        dataset._write_npz(path, {"a": np.zeros(3)}, {"samples": 3})
+    assert info.value.filename == str(path) and list(path.parent.iterdir()) == []
+
+
+def test_a_full_cache_disk_in_a_run_names_the_cache(tmp_path, cache_dir, monkeypatch):
+    import errno
+    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval import gallery
+
+    def full(run):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.path.join(cache_dir, "data-x", "chunk-00001.npz"))
+    monkeypatch.setattr(gallery, "run", full)
+    with pytest.raises(UserError) as info:
+        run_experiment(_cfg(), tmp_path / "run")
+    assert "chunk-00001.npz" in str(info.value) and "cache_dir=<folder> or SDEXP_CACHE" in str(info.value)
+    assert list((tmp_path / "run").iterdir()) == []
+
+
+def test_a_full_disk_while_writing_a_table_leaves_no_half_table(tmp_path, monkeypatch):
+    import pandas as pd
+    from sdexp.run import Run
+    monkeypatch.setattr(pd.DataFrame, "to_csv", lambda self, path, **kw: _half_then_full()(path))
+    with pytest.raises(OSError) as info:
+        Run(None, tmp_path).table(pd.DataFrame({"a": [1]}), "sota")
+    assert info.value.filename == str(tmp_path / "sota.csv") and list(tmp_path.iterdir()) == []
+
+
+class _Recorder:
+    def __init__(self, frames, times):
+        self.points, self.times, self.frame_rate = list(frames), list(times), 25.0
+
+
+def _flight_pictures(tmp_path, paraview=True):
+    """save_flight on a tiny 2D rod flight: (the run folder's files, the result)."""
+    import numpy as np
+    from types import SimpleNamespace
+    from sdexp.eval.animation import save_flight
+    rest = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.2], [0.0, 0.2]])
+    frames = [rest + [0.01 * i, 0.0] for i in range(6)]
+    drone = SimpleNamespace(boundary=np.array([[0, 1], [1, 2], [2, 3], [3, 0]]),
+                            fem=SimpleNamespace(rest=rest, mass=np.ones(4), elems=np.array([[0, 1, 2], [0, 2, 3]])))
+    out = save_flight(tmp_path, "flight", _Recorder(frames, 0.04 * np.arange(6)), drone, progress=False, paraview=paraview)
+    return sorted(p.name for p in tmp_path.iterdir()), out
+
+
+def _meshio_fails_at(frame, error):
+    import meshio
+    real = meshio.write
+
+    def write(path, mesh, **kw):
+        if str(path).endswith(f"_{frame:05d}.vtu"):
+            open(path, "wb").close()   # the 0-byte frame a full disk leaves
+            raise error
+        return real(path, mesh, **kw)
+    return write
+
+
+def test_a_full_disk_during_the_paraview_series_is_one_error_and_no_partial_series(tmp_path, monkeypatch):
+    import errno
+    import meshio
+    monkeypatch.setattr(meshio, "write", _meshio_fails_at(3, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
+    with pytest.raises(UserError) as info:
+        _flight_pictures(tmp_path)
+    assert str(tmp_path / "flight_vtu" / "flight_00003.vtu") in str(info.value) and "No space left" in str(info.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["flight.mp4"]   # the video is whole; no series, no temp folder
+
+
+def test_a_paraview_series_that_cannot_be_written_names_the_file_and_keeps_the_video(tmp_path, monkeypatch, caplog):
+    import meshio
+    monkeypatch.setattr(meshio, "write", _meshio_fails_at(2, PermissionError(13, "Permission denied")))
+    files, out = _flight_pictures(tmp_path)
+    assert files == ["flight.mp4"] and list(out) == ["video"]
+    warning = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(f"the ParaView series {tmp_path / 'flight_vtu' / 'flight_00002.vtu'} could not be written" in w
+               for w in warning), warning
+    assert not any("animation" in w for w in warning)
+
+
+def test_a_full_disk_during_the_video_leaves_no_partial_video(tmp_path, monkeypatch):
+    from sdexp.eval import animation
+    calls = []
+
+    def add(self, frame):
+        calls.append(1)
+        if len(calls) == 3:
+            _enospc()
+    monkeypatch.setattr(animation._Sink, "add", add)
+    with pytest.raises(UserError) as info:
+        _flight_pictures(tmp_path, paraview=False)
+    assert str(tmp_path / "flight.mp4") in str(info.value) and "No space left" in str(info.value)
+    assert list(tmp_path.iterdir()) == []
