@@ -148,6 +148,18 @@ def _unknown_hydra_key(key: str, args: list[str]) -> str:
     return f"{key} is not a key of {parent}{what}{hint}: allowed {', '.join(names)}"
 
 
+def _list_index(err: ValueError, args: list[str]) -> str:
+    """OmegaConf raises a bare ValueError for ``refine.x=2`` on a list (the items are indexed by
+    number): the override, and how a list is set."""
+    match = re.search(r"invalid literal for int\(\) with base 10: '([^']*)'", str(err))
+    bad = next((a for a in args if match and a.split("=", 1)[0].lstrip("+~").rsplit(".", 1)[-1] == match.group(1)), None)
+    if bad is None:
+        return f"cannot apply the overrides: {one_line(err)}"
+    key = bad.split("=", 1)[0].lstrip("+~")
+    return (f"{bad}: {key.rsplit('.', 1)[0]} is a list: allowed an item by its index "
+            f"({key.rsplit('.', 1)[0]}.0=...) or the whole list ({key.rsplit('.', 1)[0]}=[...])")
+
+
 def main() -> None:
     """The ``sdexp`` command."""
     global _started
@@ -163,6 +175,10 @@ def main() -> None:
         if _started and not isinstance(err, HydraException):
             raise   # an OmegaConf error inside a run is a bug, not a config mistake
         fail(describe(err, args))
+    except ValueError as err:
+        if _started:
+            raise
+        fail(_list_index(err, args))
     except BrokenPipeError:   # the output piped into a reader that stopped (sdexp --help | head)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         sys.exit(0)

@@ -386,3 +386,82 @@ def test_a_full_disk_during_the_video_leaves_no_partial_video(tmp_path, monkeypa
         _flight_pictures(tmp_path, paraview=False)
     assert str(tmp_path / "flight.mp4") in str(info.value) and "No space left" in str(info.value)
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ vague messages made exact
+
+def test_a_meta_sample_rate_that_contradicts_the_data_blames_meta_json(tmp_path):
+    from tests.test_bad_input import _logs, _read
+    _logs(tmp_path, sample_rate=50.0)   # the flights are spaced 0.01 s: 100 Hz
+    with pytest.raises(UserError) as info:
+        _read(tmp_path)
+    msg = str(info.value)
+    assert msg.startswith(f"{tmp_path / 'meta.json'}: sample_rate = 50.0 Hz contradicts the flights") and \
+        "spaced 0.01 s (100 Hz)" in msg and "set sample_rate to 100" in msg, msg
+
+
+def test_an_unevenly_spaced_flight_still_blames_its_time_column(tmp_path):
+    import pandas as pd
+    from tests.test_bad_input import _logs, _read
+    _logs(tmp_path)
+    path = tmp_path / "flight_001.csv"
+    table = pd.read_csv(path)
+    table.loc[5:, "t"] += 0.005
+    table.to_csv(path, index=False)
+    with pytest.raises(UserError, match=r"flight_001.csv: column 't' is not spaced 1/sample_rate = 0.01 s \(data row 6\)"):
+        _read(tmp_path)
+
+
+class _BlowingUp:
+    """A simulator that diverges on its 30th step (the bench resets it and goes on)."""
+    n_sub, dt, t = 4, 0.0025, 0.0
+
+    def __init__(self, *args):
+        self.steps, self.alive = 0, True
+        self.failure = type("F", (), {"reason": "blow-up"})()
+
+    def step(self, u):
+        self.steps += 1
+        self.alive = self.steps != 30
+
+    def reset(self):
+        self.alive = True
+
+
+def test_a_benchmark_that_blows_up_reports_no_speed_anywhere(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+    import pandas as pd
+    from sdexp.eval import bench_sim
+    from sdexp.eval.plots import bench_plot
+    monkeypatch.setattr(bench_sim, "Simulator", _BlowingUp)
+    drone = SimpleNamespace(num_rotors=2, max_thrust=1.0, dim=2, fem=SimpleNamespace(n_elems=10, order=2, rest=[0] * 8))
+    drone_cfg = SimpleNamespace(name="rod", mesh=SimpleNamespace(edge_length=0.1))
+    cfg = SimpleNamespace(sim=SimpleNamespace(control_dt=0.01), noise=None)
+    row = bench_sim.time_drone(drone, drone_cfg, cfg, seconds=0.5, seed=0)
+    assert row["blowups"] == 1 and all(row[k] is None for k in bench_sim.SPEED), row
+    rows = [{"series": "drone", **row, "bend_error": 0.01, "compliance_error": 0.02}]
+    metrics = bench_sim.metrics(rows)
+    assert metrics["rod_quadratic_realtime_factor"] is None and metrics["rod_quadratic_element_substeps_per_s"] is None
+    assert metrics["rod_quadratic_blowups"] == 1
+    table = pd.DataFrame(rows + [{**rows[0], "series": "scaling"}])
+    for c in bench_sim.SPEED:
+        table[c] = pd.to_numeric(table[c])
+    bench_plot(table, tmp_path / "bench_sim.png")   # the plot draws no speed for it, and no error
+    assert (tmp_path / "bench_sim.png").stat().st_size > 0
+    monkeypatch.setattr(_BlowingUp, "step", lambda self, u: None)   # and one that does not blow up has its speed
+    assert bench_sim.time_drone(drone, drone_cfg, cfg, seconds=0.5, seed=0)["realtime_factor"] > 0
+
+
+@pytest.mark.parametrize("args, words", [
+    (["experiment=validate_fem", "experiment.params.beam.lenght=2"],
+     ["experiment.params.beam.lenght is not a parameter of validate_fem's beam",
+      "did you mean experiment.params.beam.length?", "allowed length, poisson_ratio, sag, thickness, width, youngs_modulus"]),
+    (["experiment=validate_fem", "experiment.params.bem.length=2"],
+     ["experiment.params.bem.length is not a parameter of validate_fem", "did you mean experiment.params.beam?"]),
+    (["experiment=validate_fem", "experiment.params.refine.x=2"],
+     ["experiment.params.refine.x=2: experiment.params.refine is a list", "experiment.params.refine.0=", "[...]"]),
+    (["drone.size.x=2"], ["drone.size.x=2: drone.size is a list"]),
+])
+def test_nested_and_list_keys_name_their_own_parent(tmp_path, args, words):
+    assert_one_line_error(sdexp(*args, cwd=tmp_path), *words)
+    assert list(tmp_path.iterdir()) == []

@@ -66,6 +66,8 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
         axes[2].semilogx(group["realtime_factor"], 100 * group["bend_error"], "o-", color=colors.get(element),
                          label=f"{group['drone'].iloc[0]}, {element}")
         for _, r in group.iterrows():
+            if not np.isfinite(r["realtime_factor"]):
+                continue   # blew up: no speed to place it at
             axes[2].annotate(f"{r['elements']}", (r["realtime_factor"], 100 * r["bend_error"]), fontsize=7,
                              textcoords="offset points", xytext=(4, 4))
     axes[2].axvline(10, color="r", ls="--", label="10x real time")
