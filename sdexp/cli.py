@@ -33,6 +33,7 @@ def _main(cfg: DictConfig) -> None:
     from sdexp.eval.experiments import run_experiment
 
     _started = True
+    _end_with_the_sweep()
     logging.captureWarnings(True)   # the library's warnings in the run's log file too
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -45,6 +46,28 @@ def _main(cfg: DictConfig) -> None:
         fail(str(err))
     from sdexp.eval.experiments import summary
     log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}\n{summary(cfg, metrics)}")
+
+
+# the sdexp process a command started: a sweep's launcher (joblib's loky workers, submitit's local
+# jobs) runs the jobs in its child processes, which inherit this
+PARENT_ENV = "SDEXP_PARENT_PID"
+_watching = False
+
+
+def _end_with_the_sweep() -> None:
+    """In a sweep's worker process: end it when the sdexp process that launched it is gone. A
+    killed sweep otherwise leaves its workers running their jobs to the end, holding the jobs'
+    folders (the rerun is refused: "in use by another run"); its run lock is then a dead process's,
+    which the rerun takes over, and its outputs are written atomically."""
+    global _watching
+    parent = os.environ.get(PARENT_ENV, "")
+    if _watching or not parent.isdigit() or int(parent) == os.getpid() or os.getppid() != int(parent):
+        return
+    import threading
+
+    from sdexp.parallel import exit_with_parent
+    threading.Thread(target=exit_with_parent, args=(int(parent), 0.5), daemon=True).start()
+    _watching = True
 
 
 def _discard_if_empty(out_dir: Path) -> None:
@@ -166,6 +189,7 @@ def main() -> None:
     args = sys.argv[1:]
     previous = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing and exiting 1
+    os.environ[PARENT_ENV] = str(os.getpid())
     _started = False
     try:
         _main()

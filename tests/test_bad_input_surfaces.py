@@ -465,3 +465,79 @@ def test_a_benchmark_that_blows_up_reports_no_speed_anywhere(tmp_path, monkeypat
 def test_nested_and_list_keys_name_their_own_parent(tmp_path, args, words):
     assert_one_line_error(sdexp(*args, cwd=tmp_path), *words)
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ a killed sweep
+
+def held_job(run):
+    """A sweep job that says it started (its pid) and waits while the test's hold file exists."""
+    import time
+    from pathlib import Path
+    marks = Path(os.environ["SDEXP_TEST_MARKS"])
+    (marks / str(os.getpid())).write_text(str(run.cfg.seed))
+    while (marks / "hold").exists():
+        time.sleep(0.1)
+    return {"seed": run.cfg.seed}
+
+
+def _descendants(pid: int) -> set[int]:
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in os.listdir(f"/proc/{p}/task") if os.path.exists(f"/proc/{p}/task") else []:
+            try:
+                kids = open(f"/proc/{p}/task/{task}/children").read().split()
+            except OSError:
+                continue
+            for k in map(int, kids):
+                if k not in out:
+                    out.add(k)
+                    todo.append(k)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="reads the process tree from /proc")
+def test_killing_a_joblib_sweep_takes_its_workers_down_and_the_rerun_resumes(tmp_path):
+    import signal
+    import time
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    (marks / "hold").touch()
+    env = {**os.environ, "HYDRA_FULL_ERROR": "", "SDEXP_TEST_MARKS": str(marks)}
+    cmd = [sys.executable, "-m", "sdexp.cli", "-m", "experiment=gallery", "seed=0,1",
+           "experiment._target_=tests.test_bad_input_surfaces.held_job", "hydra/launcher=joblib",
+           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path / 'sweep'}"]
+    parent = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while len([m for m in marks.iterdir() if m.name != "hold"]) < 2:
+            assert parent.poll() is None and time.monotonic() < deadline, parent.stderr.read().decode()[-2000:]
+            time.sleep(0.2)
+        family = _descendants(parent.pid)   # loky's workers and resource tracker
+        workers = {int(m.name) for m in marks.iterdir() if m.name != "hold"}
+        assert workers <= family
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in family) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        left = [p for p in family if _alive(p)]
+        for p in left:
+            os.kill(p, signal.SIGKILL)
+        assert not left, f"{len(left)} of the killed sweep's processes outlived it by 10 s"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    (marks / "hold").unlink()
+    res = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    jobs = sorted(p for p in (tmp_path / "sweep").iterdir() if p.is_dir())
+    assert [json.loads((j / "metrics.json").read_text())["seed"] for j in jobs] == [0, 1]
