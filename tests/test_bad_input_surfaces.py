@@ -541,3 +541,50 @@ def test_killing_a_joblib_sweep_takes_its_workers_down_and_the_rerun_resumes(tmp
     assert res.returncode == 0, res.stderr[-3000:]
     jobs = sorted(p for p in (tmp_path / "sweep").iterdir() if p.is_dir())
     assert [json.loads((j / "metrics.json").read_text())["seed"] for j in jobs] == [0, 1]
+
+
+# ------------------------------------------------------------------ the discrepancy workflow with few flights
+
+@pytest.mark.parametrize("flights, holdout, floor, need", [
+    (3, 0.5, 2, "it needs 4 measured flights at discrepancy.holdout = 0.5"),   # one flight to train on
+    (3, 0.5, 8, "it needs 4 measured flights"),
+    (4, 0.5, 2, "discrepancy.floor_flights >= 3"),                               # enough flights, too few floor ones
+    (5, 0.2, 8, "it needs 8 measured flights at discrepancy.holdout = 0.2"),    # 1 held out
+    (2, 0.5, 8, "it needs 4 measured flights"),
+])
+def test_too_few_flights_for_the_naming_test_say_how_many_it_needs(flights, holdout, floor, need):
+    from sdexp.discrepancy.workflow import naming_shortfall
+    msg = naming_shortfall(flights, holdout, floor)
+    assert msg is not None and need in msg and f"{flights} measured flights" in msg and "not named" in msg, msg
+
+
+@pytest.mark.parametrize("flights, holdout, floor", [(4, 0.5, 3), (8, 0.5, 8), (6, 0.5, 3)])
+def test_enough_flights_name_as_before(flights, holdout, floor):
+    from sdexp.discrepancy.workflow import naming_shortfall
+    assert naming_shortfall(flights, holdout, floor) is None
+
+
+def test_the_workflow_names_nothing_from_too_few_flights(tmp_path, cache_dir):
+    """3 flights and 2 floor flights (the issue's case): even a payload that is there, and that
+    the fit finds, is reported as not significant rather than named and added."""
+    from dataclasses import replace
+    from sdexp.discrepancy.workflow import run_workflow
+    from sdexp.sim.drone import build_drone
+    from tests.discrepancy.conftest import SMALL
+    from tests.discrepancy.test_workflow import record
+    from tests.test_cli import make_config
+    cfg = make_config(*SMALL, "experiment=discrepancy", f"cache_dir={cache_dir}")
+    d = cfg.discrepancy
+    cfg = replace(cfg, discrepancy=replace(d, candidates=["payload", "stiffness_scale"], floor_flights=2,
+                                           record=replace(d.record, flights=3)))
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
+    record(cfg, drone, tmp_path / "logs", [{"name": "payload", "mass": 0.3, "point": [0.6, 0.0, 0.8]}], seed=12)
+    said = []
+    rep = run_workflow(drone, cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, tmp_path / "logs", tmp_path / "out",
+                       cfg.cache_dir, plots=False, log=said.append)
+    assert rep["effects"] == [] and rep["verdict"] in ("none", "unexplained"), rep["verdict"]
+    assert [e["name"] for e in rep["not_significant"]] == ["payload"], rep["rounds"]
+    assert rep["too_few_flights"] and "it needs 4 measured flights" in rep["too_few_flights"]
+    assert any("it needs 4 measured flights" in s for s in said)
+    fitted = yaml.safe_load((tmp_path / "out" / "sim_fitted.yaml").read_text())
+    assert fitted["effects"] == []   # nothing added to the simulator
