@@ -39,10 +39,7 @@ class Run:
 
     def figure(self, fig, name: str, dpi: int = 120) -> Path:
         """``<name>.png`` in the run folder; the figure is closed."""
-        from sdexp.figures import pyplot
+        from sdexp.figures import save_figure
         path = self.path(f"{name}.png")
-        try:
-            atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
-        finally:
-            pyplot().close(fig)
+        save_figure(fig, path, dpi)
         return path

@@ -588,3 +588,14 @@ def test_the_workflow_names_nothing_from_too_few_flights(tmp_path, cache_dir):
     assert any("it needs 4 measured flights" in s for s in said)
     fitted = yaml.safe_load((tmp_path / "out" / "sim_fitted.yaml").read_text())
     assert fitted["effects"] == []   # nothing added to the simulator
+
+
+def test_a_full_disk_while_saving_a_figure_leaves_no_half_picture(tmp_path, monkeypatch):
+    from matplotlib.figure import Figure
+    from sdexp.figures import save_figure
+    fig = Figure()
+    fig.add_subplot().plot([0, 1], [1, 0])
+    monkeypatch.setattr(Figure, "savefig", lambda self, path, **kw: _half_then_full()(path))
+    with pytest.raises(OSError) as info:
+        save_figure(fig, tmp_path / "stats.png")
+    assert info.value.filename == str(tmp_path / "stats.png") and list(tmp_path.iterdir()) == []

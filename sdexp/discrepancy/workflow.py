@@ -369,7 +369,7 @@ def gap_table(r_before, r_after, sigma, r_floor, channels) -> pd.DataFrame:
 def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float) -> None:
     """Measured vs nominal vs fitted predictions on the held-out windows of the channels the
     fit improved most, strung along time."""
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     top = np.argsort(-(gap.rms_before - gap.rms_after).to_numpy())[:4]
@@ -386,8 +386,7 @@ def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float) -> None
     axes[0, 0].legend(fontsize=7, ncol=3)
     axes[-1, 0].set_xlabel("held-out windows, strung together (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def _jsonable(x):

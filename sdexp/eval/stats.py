@@ -232,7 +232,7 @@ def metric_groups(metrics: list[str], min_share: int = 3) -> dict[str, list[tupl
 def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24) -> None:
     """One panel per metric group (numbers only): each group of jobs' mean with its confidence
     interval as error bars, one series per controller / prefix."""
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     nums = table[table["kind"] == "number"]
@@ -243,8 +243,7 @@ def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24)
         fig, ax = plt.subplots(figsize=(5, 2))
         ax.text(0.5, 0.5, "no numeric metrics", ha="center", va="center")
         ax.set_axis_off()
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
+        save_figure(fig, path, dpi=120)
         return
     cols = min(3, len(panels))
     rows = math.ceil(len(panels) / cols)
@@ -278,5 +277,4 @@ def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24)
     method = nums["method"].iloc[0].split(":")[0] if len(nums) else ""
     fig.suptitle(f"{title}  (mean and {method} interval, up to n = {n} jobs per point)".strip(), fontsize=12)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
