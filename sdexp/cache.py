@@ -20,11 +20,12 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+
+from sdexp.files import atomic_write  # noqa: F401 - also this module's: callers import it from here
 
 try:
     import fcntl
@@ -55,22 +56,6 @@ def config_key(node: Any) -> Any:
 def key_of(kind: str, version: int, payload: Any) -> str:
     text = json.dumps({"kind": kind, "version": version, "payload": payload}, sort_keys=True, default=str)
     return f"{kind}-{hashlib.sha256(text.encode()).hexdigest()[:16]}"
-
-
-def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp_path)`` then rename tmp_path to ``path`` (atomic on one filesystem)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except OSError as err:
-        err.filename = str(path)   # the file the caller wrote, not its temporary name
-        raise
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _unwritable(folder: Path, err: OSError):

@@ -17,7 +17,7 @@ def save_figure(fig, path, dpi: int = 120) -> None:
     mid-write leaves no truncated picture, sdexp.cache.atomic_write); the figure is closed."""
     from pathlib import Path
 
-    from sdexp.cache import atomic_write
+    from sdexp.files import atomic_write
     path = Path(path)
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png"))
