@@ -20,11 +20,12 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+
+from sdexp.files import atomic_write  # noqa: F401 - also this module's: callers import it from here
 
 try:
     import fcntl
@@ -57,21 +58,11 @@ def key_of(kind: str, version: int, payload: Any) -> str:
     return f"{kind}-{hashlib.sha256(text.encode()).hexdigest()[:16]}"
 
 
-def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp_path)`` then rename tmp_path to ``path`` (atomic on one filesystem)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def _unwritable(folder: Path, err: OSError):
-    from sdexp.errors import UserError
+    from sdexp.errors import UserError, disk_full
+    full = disk_full(err, folder, "or choose another cache with cache_dir=<folder> or SDEXP_CACHE")
+    if full is not None:
+        return full
     return UserError(f"cache_dir {folder} cannot be written ({err.strerror or err}): "
                      f"choose a writable one with cache_dir=<folder> or SDEXP_CACHE")
 

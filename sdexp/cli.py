@@ -33,6 +33,7 @@ def _main(cfg: DictConfig) -> None:
     from sdexp.eval.experiments import run_experiment
 
     _started = True
+    _end_with_the_sweep()
     logging.captureWarnings(True)   # the library's warnings in the run's log file too
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -47,12 +48,36 @@ def _main(cfg: DictConfig) -> None:
     log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}\n{summary(cfg, metrics)}")
 
 
+# the sdexp process a command started: a sweep's launcher (joblib's loky workers, submitit's local
+# jobs) runs the jobs in its child processes, which inherit this
+PARENT_ENV = "SDEXP_PARENT_PID"
+_watching = False
+
+
+def _end_with_the_sweep() -> None:
+    """In a sweep's worker process: end it when the sdexp process that launched it is gone. A
+    killed sweep otherwise leaves its workers running their jobs to the end, holding the jobs'
+    folders (the rerun is refused: "in use by another run"); its run lock is then a dead process's,
+    which the rerun takes over, and its outputs are written atomically."""
+    global _watching
+    parent = os.environ.get(PARENT_ENV, "")
+    if _watching or not parent.isdigit() or int(parent) == os.getpid() or os.getppid() != int(parent):
+        return
+    import threading
+
+    from sdexp.parallel import exit_with_parent
+    threading.Thread(target=exit_with_parent, args=(int(parent), 0.5), daemon=True).start()
+    _watching = True
+
+
 def _discard_if_empty(out_dir: Path) -> None:
-    """Hydra creates the run folder (and an empty job log) before the run: a run that stopped on
-    bad input leaves nothing behind."""
+    """Hydra creates the run folder (and the job log) before the run: a run that stopped on bad
+    input leaves nothing behind. A folder left with logs only held no run before this one (a
+    rejected run discards what it wrote, sdexp.eval.experiments.discard; one that resumed keeps its
+    config.yaml): the logs are this run's, and go with it."""
     try:
-        for log in out_dir.glob("*.log"):
-            if log.stat().st_size == 0:
+        if out_dir.is_dir() and all(p.suffix == ".log" and p.is_file() for p in out_dir.iterdir()):
+            for log in out_dir.glob("*.log"):
                 log.unlink()
         cwd = Path.cwd().resolve()
         sweep = Path(HydraConfig.get().sweep.dir).resolve() if HydraConfig.initialized() else None
@@ -96,6 +121,8 @@ def describe(err: BaseException, args: list[str]) -> str:
     match = re.match(r"Could not override '([^']+)'", str(err))
     if match:
         key = match.group(1)
+        if key.startswith("hydra."):
+            return _unknown_hydra_key(key, args)
         schema = unknown_key_error(key)
         if schema is not None:
             return str(schema)
@@ -118,12 +145,51 @@ def _unknown_param(key: str, args: list[str]) -> str:
     return str(unknown_param_error(key[len("experiment.params."):], PARAMS.get(name), name))
 
 
+def _unknown_hydra_key(key: str, args: list[str]) -> str:
+    """A misspelled hydra.* key (hydra.launcher.njobs): the keys of its parent as composed with the
+    command's own hydra/... choices (the launcher picked), not sdexp's schema, which has no hydra."""
+    import difflib
+
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    parent, _, name = key.rpartition(".")
+    choices = [a for a in args if a.startswith("hydra/")]
+    try:
+        GlobalHydra.instance().clear()
+        with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
+            node = OmegaConf.select(compose("config", overrides=choices, return_hydra_config=True), parent)
+    except Exception:   # noqa: BLE001 - whatever composing raises: the plain message then
+        node = None
+    if not isinstance(node, DictConfig):
+        return f"{key} is not a config key"
+    names = sorted(str(k) for k in node.keys())
+    close = difflib.get_close_matches(name, names, n=1)
+    hint = f" (did you mean {parent}.{close[0]}?)" if close else ""
+    what = f" ({', '.join(choices)})" if choices else ""
+    if parent == "hydra.launcher" and not any(c.startswith("hydra/launcher=") for c in choices):
+        what = " (the basic launcher, which has no settings: choose hydra/launcher=joblib, submitit_local or submitit_slurm)"
+    return f"{key} is not a key of {parent}{what}{hint}: allowed {', '.join(names)}"
+
+
+def _list_index(err: ValueError, args: list[str]) -> str:
+    """OmegaConf raises a bare ValueError for ``refine.x=2`` on a list (the items are indexed by
+    number): the override, and how a list is set."""
+    match = re.search(r"invalid literal for int\(\) with base 10: '([^']*)'", str(err))
+    bad = next((a for a in args if match and a.split("=", 1)[0].lstrip("+~").rsplit(".", 1)[-1] == match.group(1)), None)
+    if bad is None:
+        return f"cannot apply the overrides: {one_line(err)}"
+    key = bad.split("=", 1)[0].lstrip("+~")
+    return (f"{bad}: {key.rsplit('.', 1)[0]} is a list: allowed an item by its index "
+            f"({key.rsplit('.', 1)[0]}.0=...) or the whole list ({key.rsplit('.', 1)[0]}=[...])")
+
+
 def main() -> None:
     """The ``sdexp`` command."""
     global _started
     args = sys.argv[1:]
     previous = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing and exiting 1
+    os.environ[PARENT_ENV] = str(os.getpid())
     _started = False
     try:
         _main()
@@ -133,6 +199,10 @@ def main() -> None:
         if _started and not isinstance(err, HydraException):
             raise   # an OmegaConf error inside a run is a bug, not a config mistake
         fail(describe(err, args))
+    except ValueError as err:
+        if _started:
+            raise
+        fail(_list_index(err, args))
     except BrokenPipeError:   # the output piped into a reader that stopped (sdexp --help | head)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         sys.exit(0)

@@ -371,11 +371,20 @@ def unknown_key_error(key: str) -> UserError | None:
 def unknown_param_error(key: str, params_cls, experiment: str) -> UserError:
     """The error for ``experiment.params.<key>``, which the experiment's params (``params_cls``,
     sdexp.experiment_params) lack: the closest one and all of them."""
-    names = sorted(f.name for f in dataclasses.fields(params_cls)) if params_cls is not None else []
-    close = difflib.get_close_matches(key, names, n=1)
-    hint = f" (did you mean experiment.params.{close[0]}?)" if close else ""
-    return UserError(f"experiment.params.{key} is not a parameter of {experiment}{hint}: "
-                     f"allowed {', '.join(names) or 'none'}")
+    cls, parts = params_cls, key.split(".")
+    for i, part in enumerate(parts[:-1]):   # a nested key (beam.lenght): the nested dataclass's fields
+        hint = _fields(cls).get(part) if cls is not None else None
+        if not dataclasses.is_dataclass(hint):
+            parts = [".".join(parts[:i + 1])]   # the first part that is not a group is the unknown one
+            break
+        cls = hint
+    parent, name = ".".join(parts[:-1]), parts[-1]
+    names = sorted(f.name for f in dataclasses.fields(cls)) if cls is not None else []
+    close = difflib.get_close_matches(name, names, n=1)
+    prefix = f"experiment.params.{parent + '.' if parent else ''}"
+    hint = f" (did you mean {prefix}{close[0]}?)" if close else ""
+    what = f"of {experiment}" if not parent else f"of {experiment}'s {parent}"
+    return UserError(f"experiment.params.{key} is not a parameter {what}{hint}: allowed {', '.join(names) or 'none'}")
 
 
 def check_keys(cfg: DictConfig) -> None:

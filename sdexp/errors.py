@@ -1,6 +1,10 @@
 """Errors that are the user's to fix: printed as one clear message, never as a traceback."""
 from __future__ import annotations
 
+import errno
+import shutil
+from pathlib import Path
+
 # Every user error (sdexp's own checks, Hydra's config composition, an unwritable output folder)
 # exits with this code; a traceback (a bug) exits with 1.
 EXIT_USER_ERROR = 2
@@ -26,3 +30,20 @@ def one_line(err: BaseException) -> str:
             parts.append(text.rstrip("."))
         err = err.__cause__
     return ": ".join(parts) or "unknown error"
+
+
+# a disk or quota that is full, a file system that turned read-only: the machine's state, which the
+# user fixes; one line naming the path, not a traceback
+FULL = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+def disk_full(err: OSError, where: str | Path, alternative: str) -> UserError | None:
+    """``err`` as a UserError naming the file (else ``where``) and the space left there, if it is
+    a full disk or quota; None for any other OSError. ``alternative``: how to write elsewhere."""
+    if err.errno not in FULL:
+        return None
+    path = Path(err.filename or where)
+    free = next((shutil.disk_usage(p).free for p in (path, *path.parents) if p.exists()), None)
+    left = f", {free / 1e6:.1f} MB free there" if free is not None else ""
+    return UserError(f"cannot write {path}: {err.strerror or 'no space left on device'}{left}: free some space"
+                     + (f", {alternative}" if alternative else ""))

@@ -10,3 +10,16 @@ def pyplot():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
+
+
+def save_figure(fig, path, dpi: int = 120) -> None:
+    """``fig`` into ``path`` (its suffix: the format), written whole or not at all (a full disk
+    mid-write leaves no truncated picture, sdexp.cache.atomic_write); the figure is closed."""
+    from pathlib import Path
+
+    from sdexp.files import atomic_write
+    path = Path(path)
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png"))
+    finally:
+        pyplot().close(fig)

@@ -23,10 +23,10 @@ def _init(q, parent: int) -> None:
     global _REPORT
     _REPORT = q.put
     import threading
-    threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
+    threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
 
 
-def _exit_with(parent: int, every: float = 1.0) -> None:
+def exit_with_parent(parent: int, every: float = 1.0) -> None:
     """End this worker when the process that started it is gone (killed runs otherwise leave
     their workers simulating to the end of their task); its outputs are written atomically, so
     nothing half-written stays behind."""

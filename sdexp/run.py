@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sdexp.cache import atomic_write
 from sdexp.config import Config
 
 
@@ -29,16 +30,16 @@ class Run:
         """A file of the run folder."""
         return self.out_dir / name
 
+    # written whole or not at all (a full disk mid-write leaves no short table, sdexp.cache.atomic_write)
     def table(self, frame, name: str, **to_csv) -> Path:
         """``<name>.csv`` in the run folder, without the frame's index."""
         path = self.path(f"{name}.csv")
-        frame.to_csv(path, index=False, **to_csv)
+        atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False, **to_csv))
         return path
 
     def figure(self, fig, name: str, dpi: int = 120) -> Path:
         """``<name>.png`` in the run folder; the figure is closed."""
-        from sdexp.figures import pyplot
+        from sdexp.figures import save_figure
         path = self.path(f"{name}.png")
-        fig.savefig(path, dpi=dpi)
-        pyplot().close(fig)
+        save_figure(fig, path, dpi)
         return path

@@ -274,7 +274,7 @@ def confusion(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def confusion_plot(cm: pd.DataFrame, path) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(1.2 + 0.45 * cm.shape[1], 1.2 + 0.4 * cm.shape[0]))
@@ -287,8 +287,7 @@ def confusion_plot(cm: pd.DataFrame, path) -> None:
     ax.set_xlabel("workflow's answer (top-1)")
     ax.set_ylabel("hidden effect")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_dir: str, seed: int = 0,

@@ -156,7 +156,7 @@ def unexplained_cell(table: pd.DataFrame, channels: list[str], ratio: float, alp
 
 
 def heatmap(table: pd.DataFrame, path, title: str) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     t = table[table.regime != "all"].copy()
@@ -170,5 +170,4 @@ def heatmap(table: pd.DataFrame, path, title: str) -> None:
     ax.set_title(title, fontsize=9)
     fig.colorbar(im, ax=ax, label="log2(residual / noise floor)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -193,6 +193,12 @@ def read_logs(folder, drone_name: str, num_rotors: int, num_sensors: int, dim: i
         if np.any(dt <= 0):
             raise UserError(f"{path}: column 't' is not strictly increasing (data row {np.flatnonzero(dt <= 0)[0] + 2})")
         if np.any(np.abs(dt * rate - 1.0) > 0.01):
+            step = float(np.median(dt))
+            if np.all(np.abs(dt / step - 1.0) <= 0.01):
+                # the flight is evenly spaced, at another rate than meta.json states: meta.json is wrong
+                raise UserError(f"{meta_path}: sample_rate = {meta['sample_rate']} Hz contradicts the flights: "
+                                f"{path.name}'s column 't' is spaced {step:g} s ({1 / step:g} Hz); allowed the rate "
+                                f"the logs were recorded at: set sample_rate to {1 / step:g}")
             raise UserError(f"{path}: column 't' is not spaced 1/sample_rate = {1 / rate:g} s "
                             f"(data row {np.flatnonzero(np.abs(dt * rate - 1.0) > 0.01)[0] + 2})")
         flights.append(Flight(path.stem, t, table[thrust_names(num_rotors)].to_numpy(float),

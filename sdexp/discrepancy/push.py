@@ -91,7 +91,7 @@ def summary(table: pd.DataFrame, floor_loss: float, dim: int) -> dict:
 
 def plot(table: pd.DataFrame, path, dim: int, title: str) -> None:
     """The push over each flight's windows: linear (top) and angular (bottom) acceleration."""
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     cols = names(dim)
@@ -113,5 +113,4 @@ def plot(table: pd.DataFrame, path, dim: int, title: str) -> None:
     axes[0].set_title(title, fontsize=9)
     axes[1].set_xlabel("window start, flights strung together (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -63,7 +63,7 @@ def run(run: Run) -> dict:
 
 
 def _plot(tables: dict, target_x: float, path: Path, drone: str) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
@@ -83,5 +83,4 @@ def _plot(tables: dict, target_x: float, path: Path, drone: str) -> None:
     axes[1].legend(fontsize=8)
     fig.suptitle(f"{drone}: translate {target_x:g} m along +X with a polluted fixed point as the goal")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
+import shutil
 import subprocess
 import textwrap
 from pathlib import Path
@@ -67,7 +69,7 @@ def write_vtu_series(folder, points_seq, cells, times, point_data=None, name: st
     import meshio
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder.parent.mkdir(parents=True, exist_ok=True)
     name = name or folder.name
     points_seq = [np.asarray(p, dtype=dtype) for p in points_seq]
     times = [float(t) for t in times]
@@ -79,27 +81,53 @@ def write_vtu_series(folder, points_seq, cells, times, point_data=None, name: st
     for k, v in point_data.items():
         if len(v) != len(points_seq):
             raise ValueError(f"point_data[{k!r}] has {len(v)} frames, the positions {len(points_seq)}")
-    for old in folder.glob(f"{name}_*.vtu"):   # a shorter series written here before
-        old.unlink()
-    files = []
-    for i, pts in enumerate(points_seq):
-        if pts.shape[1] == 2:
-            pts = np.c_[pts, np.zeros(len(pts), dtype=dtype)]
-        data = {}
-        for k, v in point_data.items():
-            d = np.asarray(v[i], dtype=dtype)
-            data[k] = np.c_[d, np.zeros(len(d), dtype=dtype)] if d.ndim == 2 and d.shape[1] == 2 else d
-        fname = f"{name}_{i:05d}.vtu"
-        meshio.write(folder / fname, meshio.Mesh(pts, blocks, point_data=data), file_format="vtu",
-                     binary=True, compression="zlib")
-        files.append(fname)
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">', "  <Collection>"]
-    lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>' for t, f in zip(times, files)]
-    lines += ["  </Collection>", "</VTKFile>", ""]
-    pvd = folder / f"{name}.pvd"
-    pvd.write_text("\n".join(lines))
+    # the series is written into a temporary folder beside and put in place whole: a disk that
+    # fills mid-series leaves no short series with a 0-byte frame, and the old series stays whole
+    tmp = folder.parent / f".{folder.name}.{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        files = []
+        for i, pts in enumerate(points_seq):
+            if pts.shape[1] == 2:
+                pts = np.c_[pts, np.zeros(len(pts), dtype=dtype)]
+            data = {}
+            for k, v in point_data.items():
+                d = np.asarray(v[i], dtype=dtype)
+                data[k] = np.c_[d, np.zeros(len(d), dtype=dtype)] if d.ndim == 2 and d.shape[1] == 2 else d
+            fname = f"{name}_{i:05d}.vtu"
+            try:
+                meshio.write(tmp / fname, meshio.Mesh(pts, blocks, point_data=data), file_format="vtu",
+                             binary=True, compression="zlib")
+            except OSError as err:
+                err.filename = str(folder / fname)   # the file the user would look for
+                raise
+            files.append(fname)
+        lines = ['<?xml version="1.0"?>',
+                 '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">', "  <Collection>"]
+        lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>' for t, f in zip(times, files)]
+        lines += ["  </Collection>", "</VTKFile>", ""]
+        pvd = folder / f"{name}.pvd"
+        try:
+            (tmp / pvd.name).write_text("\n".join(lines))
+        except OSError as err:
+            err.filename = str(pvd)
+            raise
+        _replace_folder(tmp, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return pvd
+
+
+def _replace_folder(new: Path, folder: Path) -> None:
+    """``new``'s contents in place of ``folder``'s (a shorter series written there before goes)."""
+    if folder.exists():
+        old = folder.parent / f".{folder.name}.{os.getpid()}.old"
+        os.replace(folder, old)
+        os.replace(new, folder)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(new, folder)
 
 
 def read_pvd(path) -> list[tuple[float, str]]:
@@ -209,15 +237,17 @@ class _Sink:
         import imageio.v2 as imageio
         self.path, self.fps, self.gif = path, fps, []
         self.writer = None
-        if path.suffix.lower() == ".mp4":
-            if _ffmpeg_available():
-                self.writer = imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264",
-                                                 quality=6, pixelformat="yuv420p", macro_block_size=16,
-                                                 ffmpeg_log_level="error")
-            else:
-                self.path = path.with_suffix(".gif")
-                log.warning(f"sdexp: ffmpeg is not available (pip install imageio-ffmpeg): writing "
-                            f"{self.path.name} instead of {path.name}")
+        if path.suffix.lower() == ".mp4" and not _ffmpeg_available():
+            self.path = path.with_suffix(".gif")
+            log.warning(f"sdexp: ffmpeg is not available (pip install imageio-ffmpeg): writing "
+                        f"{self.path.name} instead of {path.name}")
+        # written under a temporary name beside (ffmpeg picks the container by its suffix) and
+        # renamed when complete: a video cut short by a full disk never takes the final name
+        self.tmp = self.path.with_name(f".{self.path.stem}.{os.getpid()}.tmp{self.path.suffix}")
+        if self.path.suffix.lower() == ".mp4":
+            self.writer = imageio.get_writer(self.tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                                             quality=6, pixelformat="yuv420p", macro_block_size=16,
+                                             ffmpeg_log_level="error")
 
     def add(self, frame: np.ndarray) -> None:
         if self.writer is not None:
@@ -225,13 +255,22 @@ class _Sink:
         else:
             self.gif.append(frame[::2, ::2].copy())   # GIFs are big: half the size
 
-    def close(self) -> Path:
-        if self.writer is not None:
-            self.writer.close()
-        else:
-            import imageio.v3 as iio
-            iio.imwrite(self.path, np.stack(self.gif), extension=".gif", plugin="pillow",
-                        duration=1000.0 / self.fps, loop=0)
+    def close(self, complete: bool = True) -> Path:
+        """Finish the file and give it its name (``complete``), or remove what was written."""
+        try:
+            if self.writer is not None:
+                self.writer.close()
+            elif complete:
+                import imageio.v3 as iio
+                iio.imwrite(self.tmp, np.stack(self.gif), extension=".gif", plugin="pillow",
+                            duration=1000.0 / self.fps, loop=0)
+            if complete:
+                os.replace(self.tmp, self.path)
+        except OSError as err:
+            err.filename = str(self.path)
+            raise
+        finally:
+            self.tmp.unlink(missing_ok=True)
         return self.path
 
 
@@ -305,9 +344,10 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
             clock.set_text(f"t = {times[i]:6.2f} s{where}")
             fig.draw_artist(clock)
             sink.add(np.asarray(canvas.buffer_rgba())[..., :3])
-    finally:
-        written = sink.close()
-    return written
+    except BaseException:
+        sink.close(complete=False)
+        raise
+    return sink.close()
 
 
 class _Draw3D:
@@ -414,21 +454,37 @@ def save_flight(out_dir, stem: str, recorder, drone, obstacles=None, title: str 
     frames = np.stack(recorder.points)
     times = np.asarray(recorder.times)
     fem = drone.fem
-    try:   # the flight's numbers are written whatever becomes of its pictures
-        t0 = time.perf_counter()
-        video = write_animation(out_dir / f"{stem}.mp4", frames, times, drone.boundary, rest=fem.rest,
-                                weights=fem.mass, obstacles=obstacles, title=title, fps=recorder.frame_rate,
-                                progress=progress)
-        t1 = time.perf_counter()
-        pvd = None
-        if paraview:   # opt-in: 57 MB for a 20 s flower flight, against 0.4 MB of video
-            fitted = rigid_fit(frames, fem.rest, fem.mass)
-            pvd = write_vtu_series(out_dir / f"{stem}_vtu", frames, fem.elems, times,
-                                   point_data={"deformation": frames - fitted}, name=stem, dtype=np.float32)
-        t2 = time.perf_counter()
+    out = {}
+    # the flight's numbers are written whatever becomes of its pictures, except on a full disk,
+    # where they could not be written either (a UserError naming the file, the run stops)
+    t0 = time.perf_counter()
+    out["video"] = _picture(stem, "video", out_dir / f"{stem}.mp4", lambda: write_animation(
+        out_dir / f"{stem}.mp4", frames, times, drone.boundary, rest=fem.rest, weights=fem.mass,
+        obstacles=obstacles, title=title, fps=recorder.frame_rate, progress=progress))
+    t1 = time.perf_counter()
+    if paraview:   # opt-in: 57 MB for a 20 s flower flight, against 0.4 MB of video
+        fitted = rigid_fit(frames, fem.rest, fem.mass)
+        out["pvd"] = _picture(stem, "ParaView series", out_dir / f"{stem}_vtu", lambda: write_vtu_series(
+            out_dir / f"{stem}_vtu", frames, fem.elems, times, point_data={"deformation": frames - fitted},
+            name=stem, dtype=np.float32))
+    took = {"video": t1 - t0, "pvd": time.perf_counter() - t1}
+    out = {k: v for k, v in out.items() if v is not None}
+    if out:
+        log.info(f"sdexp: {stem}: {len(frames)} frames -> " + ", ".join(f"{v} ({took[k]:.1f} s)" for k, v in out.items()))
+    return out
+
+
+def _picture(stem: str, what: str, path: Path, write) -> Path | None:
+    """``write()``'s path, or None with a warning naming the file that failed."""
+    from sdexp.errors import disk_full
+    try:
+        return write()
     except (OSError, RuntimeError) as err:
-        log.warning(f"sdexp: {stem}: the animation could not be written: {err}")
-        return {}
-    log.info(f"sdexp: {stem}: {len(frames)} frames -> {video} ({t1 - t0:.1f} s)"
-             + (f", ParaView series {pvd} ({t2 - t1:.1f} s)" if pvd else ""))
-    return {"video": video, "pvd": pvd} if pvd else {"video": video}
+        full = disk_full(err, path, "or choose another folder with hydra.run.dir=<folder>") \
+            if isinstance(err, OSError) else None
+        if full is not None:
+            raise full from None
+        failed = getattr(err, "filename", None) or path
+        log.warning(f"sdexp: {stem}: the {what} {failed} could not be written ({err}); the flight's numbers are "
+                    f"written all the same")
+        return None

@@ -20,6 +20,9 @@ from sdexp.sim.simulator import Simulator
 log = logging.getLogger(__name__)
 
 
+SPEED = ("element_substeps_per_s", "us_per_substep", "realtime_factor", "realtime_factor_best_block")
+
+
 def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25) -> dict:
     """Wall time of ``seconds`` of simulated flight, timed in blocks of ``block`` control steps:
     the figures are the median block's (this VM's neighbours move single timings by 30-50%),
@@ -45,14 +48,13 @@ def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25
     step_wall = np.median(walls) / block
     best = min(walls) / block
     n_el = drone.fem.n_elems
-    return {
-        **stepping(drone, drone_cfg, sim),
-        "element_substeps_per_s": n_el * sim.n_sub / step_wall,
-        "us_per_substep": 1e6 * step_wall / sim.n_sub,
-        "realtime_factor": cfg.sim.control_dt / step_wall,
-        "realtime_factor_best_block": cfg.sim.control_dt / best,
-        "blowups": len(blowups), "blowup_detail": "; ".join(blowups),
-    }
+    speed = dict(zip(SPEED, (n_el * sim.n_sub / step_wall, 1e6 * step_wall / sim.n_sub,
+                             cfg.sim.control_dt / step_wall, cfg.sim.control_dt / best)))
+    if blowups:
+        # a diverged run's blocks time blown-up states and resets, not a flight: no speed to report
+        # (null in the CSV, metrics.json and the plot alike), the blow-ups counted instead
+        speed = dict.fromkeys(speed, None)
+    return {**stepping(drone, drone_cfg, sim), **speed, "blowups": len(blowups), "blowup_detail": "; ".join(blowups)}
 
 
 def stepping(drone, drone_cfg, sim) -> dict:
@@ -112,11 +114,18 @@ def run(run: Run) -> dict:
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
                              **response_errors(drone, ref, gravity, load)})
     table = pd.DataFrame(rows)
+    for c in SPEED:   # a blown-up run's null speeds: NaN in a numeric column, as the plot reads it
+        table[c] = pd.to_numeric(table[c])
     run.table(table, "bench_sim")
     bench_plot(table, out_dir / "bench_sim.png")
     show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
             "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
     log.info(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    return metrics(rows)
+
+
+def metrics(rows: list[dict]) -> dict:
+    """metrics.json: each benchmarked drone's speed (null where it blew up), accuracy and blow-ups."""
     out = {}
     for r in rows:
         if r["series"] == "drone":
@@ -125,4 +134,5 @@ def run(run: Run) -> dict:
             out[f"{tag}_element_substeps_per_s"] = r["element_substeps_per_s"]
             out[f"{tag}_bend_error"] = r["bend_error"]
             out[f"{tag}_compliance_error"] = r["compliance_error"]
+            out[f"{tag}_blowups"] = r["blowups"]
     return out

@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from sdexp import conf
 from sdexp.cache import atomic_write
 from sdexp.config import Config, validate
-from sdexp.errors import UserError, one_line
+from sdexp.errors import UserError, disk_full, one_line
 from sdexp.run import Run
 
 log = logging.getLogger(__name__)
@@ -221,36 +221,75 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
     except OSError as err:
         raise UserError(f"cannot write the run's output folder {out_dir}: {err.strerror or err} "
                         f"(choose a writable one with hydra.run.dir=<folder>)") from None
+    before = {p.name for p in out_dir.iterdir()}
     try:
-        done = out_dir / "metrics.json"
-        check_same_config(out_dir, resolved, done.exists())
-        if done.exists():
-            log.info(f"sdexp: {done} exists with the same config, skipping (delete it to rerun)")
-            try:
-                return json.loads(done.read_text())
-            except (OSError, ValueError) as err:
-                raise UserError(f"{done} cannot be read ({err}): delete it to rerun") from None
         try:
-            atomic_write(out_dir / "config.yaml", lambda tmp: tmp.write_text(OmegaConf.to_yaml(resolved)))
-            if overrides is not None:
-                atomic_write(out_dir / "overrides.yaml",
-                             lambda tmp: tmp.write_text(OmegaConf.to_yaml(list(overrides))))
+            return _run_in(out_dir, config, fn, resolved, overrides)
         except OSError as err:
-            raise UserError(f"cannot write the run's output folder {out_dir}: {err.strerror or err} "
-                            f"(choose a writable one with hydra.run.dir=<folder>)") from None
-        seed_everything(int(config.seed))
-        from sdexp.parallel import fit_to_cores, job_cores, limited_threads
-        cores, jobs = job_cores(config.cores)
-        config, changed = fit_to_cores(config, cores)
-        log.info(f"sdexp: {name} (seed {config.seed}) on {cores} core{'s' if cores > 1 else ''}"
-                 + (f", {jobs} jobs side by side" if jobs > 1 else "")
-                 + (f" ({', '.join(changed)})" if changed else "") + f" -> {out_dir}")
-        with limited_threads(cores):
-            metrics = fn(Run(config, out_dir))
-        write_json(done, metrics)
-        return metrics
+            cache = Path(str(config.cache_dir)).expanduser().resolve()
+            in_cache = err.filename is not None and cache in Path(str(err.filename)).resolve().parents
+            full = disk_full(err, out_dir, "or choose another cache with cache_dir=<folder> or SDEXP_CACHE"
+                             if in_cache else "or choose another folder with hydra.run.dir=<folder>")
+            if full is None:
+                raise
+            raise full from None
+    except UserError:
+        if "config.yaml" not in before:
+            discard(out_dir, before)
+        raise
     finally:
         lock.unlink(missing_ok=True)
+
+
+def _run_in(out_dir: Path, config: Config, fn: Callable, resolved: dict, overrides: list[str] | None) -> dict:
+    """The run proper, in the folder it holds the lock of: skip a finished run of the same config,
+    save the config, run, write metrics.json."""
+    name = config.experiment.name
+    done = out_dir / "metrics.json"
+    check_same_config(out_dir, resolved, done.exists())
+    if done.exists():
+        log.info(f"sdexp: {done} exists with the same config, skipping (delete it to rerun)")
+        try:
+            return json.loads(done.read_text())
+        except (OSError, ValueError) as err:
+            raise UserError(f"{done} cannot be read ({err}): delete it to rerun") from None
+    try:
+        atomic_write(out_dir / "config.yaml", lambda tmp: tmp.write_text(OmegaConf.to_yaml(resolved)))
+        if overrides is not None:
+            atomic_write(out_dir / "overrides.yaml",
+                         lambda tmp: tmp.write_text(OmegaConf.to_yaml(list(overrides))))
+    except OSError as err:
+        if disk_full(err, out_dir, "") is not None:
+            raise
+        raise UserError(f"cannot write the run's output folder {out_dir}: {err.strerror or err} "
+                        f"(choose a writable one with hydra.run.dir=<folder>)") from None
+    seed_everything(int(config.seed))
+    from sdexp.parallel import fit_to_cores, job_cores, limited_threads
+    cores, jobs = job_cores(config.cores)
+    config, changed = fit_to_cores(config, cores)
+    log.info(f"sdexp: {name} (seed {config.seed}) on {cores} core{'s' if cores > 1 else ''}"
+             + (f", {jobs} jobs side by side" if jobs > 1 else "")
+             + (f" ({', '.join(changed)})" if changed else "") + f" -> {out_dir}")
+    with limited_threads(cores):
+        metrics = fn(Run(config, out_dir))
+    write_json(done, metrics)
+    return metrics
+
+
+def discard(out_dir: Path, before: set[str]) -> None:
+    """What a rejected run wrote into its folder (config.yaml, overrides.yaml, half its tables):
+    gone, so that nothing blocks the corrected rerun into the same folder (its config.yaml would
+    read as an unfinished run of another config). Only a run that started the folder afresh
+    discards; one that resumed an earlier run keeps that run's files. The logs Hydra opened
+    before the run are the cli's to remove (sdexp.cli)."""
+    import shutil
+    for p in out_dir.iterdir():
+        if p.name in before or p.suffix == ".log":
+            continue
+        try:
+            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+        except OSError:
+            pass
 
 
 def summary(cfg: DictConfig, metrics: dict, lines: int = 12) -> str:

@@ -105,7 +105,7 @@ def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path:
     runs off the panel), so a flight that ended early reads as a short line ending in a cross."""
     from matplotlib.lines import Line2D
 
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     n = len(tables)
@@ -142,5 +142,4 @@ def position_plot(tables: dict[str, pd.DataFrame], titles: dict[str, str], path:
     fig.legend(handles=handles, loc="upper right", ncol=5, fontsize=10, frameon=False)
     fig.suptitle(suptitle, x=0.02, ha="left", fontsize=13)
     fig.tight_layout(rect=(0, 0, 1, 0.95))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -66,7 +66,7 @@ def run(run: Run) -> dict:
 
 
 def _plot(tab, a, dyn, settle: float, path: Path, drone: str, out: dict) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     sl = dyn.slices
@@ -95,8 +95,7 @@ def _plot(tab, a, dyn, settle: float, path: Path, drone: str, out: dict) -> None
     fig.suptitle(f"{drone}: hover with active deformation -- after {settle:g} s: attitude within "
                  f"{out['max_attitude_deviation_deg']:.1f} deg, position within {out['max_position_deviation_cm']:.1f} cm")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def summary(params, metrics: dict) -> str:

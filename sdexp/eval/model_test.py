@@ -98,7 +98,7 @@ def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon:
 def acceleration_plot(data, rows, series, table, dt: float, seconds: float, path: Path) -> None:
     """``rows``: the dataset rows of ``series`` (acceleration_test); ``seconds`` of the longest
     held-out episode, ``dt`` between rows."""
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     ep = data.arrays["episode"][rows]
@@ -129,8 +129,7 @@ def acceleration_plot(data, rows, series, table, dt: float, seconds: float, path
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("Held-out episode: measured acceleration vs (predicted velocity - velocity) / alpha")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 # ------------------------------------------------------------------------------ (b) rollout
@@ -278,7 +277,7 @@ def state_errors(dyn: LearnedDynamics, X_hat: np.ndarray, X_true: np.ndarray) ->
 
 
 def rollout_plot(t, X_true, preds: dict, errs: dict, dyn, names, path: Path) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     sl = dyn.slices
@@ -315,8 +314,7 @@ def rollout_plot(t, X_true, preds: dict, errs: dict, dyn, names, path: Path) -> 
     ax.legend(fontsize=7, ncol=2)
     fig.suptitle("Open-loop prediction of a test flight from its logged commands")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 # ------------------------------------------------------------------------------ runner

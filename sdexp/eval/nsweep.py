@@ -41,7 +41,7 @@ def run(run: Run) -> dict:
 
 
 def _plot(table: pd.DataFrame, tables: dict, target: np.ndarray, path: Path, drone: str) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
@@ -72,5 +72,4 @@ def _plot(table: pd.DataFrame, tables: dict, target: np.ndarray, path: Path, dro
     ax.grid(alpha=0.3, which="both")
     fig.suptitle(f"{drone}: relinearisation period sweep")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)

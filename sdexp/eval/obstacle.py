@@ -100,7 +100,7 @@ def run(run: Run) -> dict:
 
 
 def _plot(tab, pitch, fold_deg: float, boxes, rest_width: float, path: Path, drone: str, out: dict) -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
     from matplotlib.patches import Rectangle
 
@@ -139,8 +139,7 @@ def _plot(tab, pitch, fold_deg: float, boxes, rest_width: float, path: Path, dro
                  f"{out['width_reduction_percent']:.0f}%, Z deviation {out['max_z_deviation_m']:.2f} m, "
                  f"{'passed' if out['passed'] else ('hit' if out['hit_obstacle'] else 'did not pass')}")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def _gap_heights(boxes) -> tuple[float, float]:

@@ -9,17 +9,22 @@ have none). Intervals are 95% Student-t intervals over seeds (sdexp.eval.stats.i
 Each claim gets a verdict by a rule stated in its row: *reproduced*, *partly* or *not reproduced*,
 or *not run* where no quadratic run is committed yet. The rules are ours; the paper states its
 claims in words, and the numbers behind each verdict are printed beside it.
+
+A verdict never changes because a file is damaged: every file a counted folder holds (metrics.json,
+config.yaml, its CSV tables) is read whole or the report refuses, naming it, and writes nothing
+(sdexp.eval.committed); the runs left out (linear elements) are listed under the table.
 """
 from __future__ import annotations
 
-import json
+import functools
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
+from sdexp.errors import EXIT_USER_ERROR, UserError
+from sdexp.eval import committed
+from sdexp.eval.committed import Run
 from sdexp.eval.sota import PAPER
 from sdexp.eval.stats import interval
 
@@ -27,29 +32,30 @@ RESULTS = Path(__file__).resolve().parents[2] / "results"
 REPRODUCED, PARTLY, NOT, NOT_RUN = "reproduced", "partly", "not reproduced", "not run"
 
 
-@dataclass
-class Run:
-    folder: Path
-    metrics: dict
-    config: dict
-
-    @property
-    def seed(self) -> int:
-        return int(self.config.get("seed", 0))
+@functools.lru_cache(maxsize=None)
+def _split(results: Path, name: str) -> tuple[list[Run], list[Path]]:
+    """(the quadratic-simulator runs of experiment ``name`` by seed, the folders left out as runs
+    on the linear elements); a damaged or incomplete folder is a UserError (sdexp.eval.committed).
+    Cached for one render (render clears it): the sections and the left-out list read each once."""
+    out, left = [], []
+    for folder in committed.folders(results, name):
+        run = committed.load(folder, name)
+        if (run.config.get("sim") or {}).get("element") == "quadratic":
+            out.append(run)
+        else:
+            left.append(folder)
+    return sorted(out, key=lambda r: r.seed), left
 
 
 def runs(results: Path, name: str) -> list[Run]:
     """The quadratic-simulator runs of experiment ``name``, by seed."""
-    folders = [results / name] + sorted(p.parent for p in (results / f"{name}_seeds").glob("*/metrics.json"))
-    out = []
-    for f in folders:
-        if not (f / "metrics.json").exists() or not (f / "config.yaml").exists():
-            continue
-        config = yaml.safe_load((f / "config.yaml").read_text())
-        if (config.get("sim") or {}).get("element") != "quadratic":
-            continue
-        out.append(Run(f, json.loads((f / "metrics.json").read_text()), config))
-    return sorted(out, key=lambda r: r.seed)
+    return _split(results, name)[0]
+
+
+def keys(rs: list[Run], prefix: str = "", suffix: str = "") -> list[str]:
+    """The metric names of any of the runs (a run lacking one that another has is then an error
+    naming its file, not a silently smaller table)."""
+    return list(dict.fromkeys(k for r in rs for k in r.metrics if k.startswith(prefix) and k.endswith(suffix)))
 
 
 def mean_ci(values, digits: int = 3) -> str:
@@ -89,7 +95,7 @@ def sota_section(results: Path) -> tuple[list[str], list[tuple]]:
              "| controller | survived (ours) | survival time (s), ours | paper | final error (m), ours | paper |",
              "| --- | --- | --- | --- | --- | --- |"]
     for name in ("ours", "rigid_lqr", "geometry_lqr", "neural"):
-        if f"{name}_survival_time" not in rs[0].metrics:
+        if f"{name}_survival_time" not in keys(rs):
             continue
         surv = [r.metrics[f"{name}_survival_time"] for r in rs]
         ok = sum(bool(r.metrics[f"{name}_survived"]) for r in rs)
@@ -119,7 +125,7 @@ def fixed_point_section(results: Path) -> tuple[list[str], list[tuple]]:
     claim = "fixed-point ablation (rod): linearised once degrades past 20% pollution and fails past 40%; relinearised steady at 80%"
     if not rs:
         return [], [(claim, "", "", NOT_RUN, "")]
-    levels = sorted({int(k.split("_")[1]) for k in rs[0].metrics if k.startswith("fixed_") and k.endswith("_final_error")})
+    levels = sorted({int(k.split("_")[1]) for k in keys(rs, "fixed_", "_final_error")})
     dist = float(rs[0].config["experiment"]["params"]["distance"])
     lines = ["## Fixed-point ablation (rod)\n",
              f"`results/ablation_fixed_point/` and `_seeds/`, {seeds_text(rs)}: final distance to the goal (m), "
@@ -157,7 +163,7 @@ def nsweep_section(results: Path) -> tuple[list[str], list[tuple]]:
     claim = "relinearisation period: n in [5, 20] is the sweet spot"
     if not rs:
         return [], [(claim, "", "", NOT_RUN, "")]
-    ns = sorted({int(k[1:].split("_")[0]) for k in rs[0].metrics if k.startswith("n") and k.endswith("_final_error")})
+    ns = sorted({int(k[1:].split("_")[0]) for k in keys(rs, "n", "_final_error")})
     seconds = float(rs[0].config["experiment"]["params"]["seconds"])
     lines = ["## Relinearisation period (flower, SOTA task)\n", f"`results/nsweep/` and `_seeds/`, {seeds_text(rs)}.\n",
              "| n | survived | final error (m) |", "| --- | --- | --- |"]
@@ -329,7 +335,14 @@ SECTIONS = (sota_section, fixed_point_section, nsweep_section, hover_section, ob
             fleet_section, decomposition_section, model_test_section)
 
 
+# the experiments the sections read (each section's runs(results, name))
+EXPERIMENTS = ("sota", "ablation_fixed_point", "nsweep", "hover_deform", "obstacle", "ablation_decomposition",
+               "model_test")
+
+
 def render(results: Path = RESULTS) -> str:
+    committed.check_results_dir(results)
+    _split.cache_clear()   # the folders may have changed since the last render
     body, claims = [], []
     for section in SECTIONS:
         lines, found = section(results)
@@ -343,12 +356,24 @@ def render(results: Path = RESULTS) -> str:
             "",
             "| claim | paper | ours | verdict | rule |", "| --- | --- | --- | --- | --- |"]
     head += [f"| {c} | {p} | {o} | **{v}** | {rule} |" for c, p, o, v, rule in claims]
+    left = [f.relative_to(results).as_posix() for name in EXPERIMENTS for f in _split(results, name)[1]]
+    if left:   # never dropped silently: the runs that do not count are named
+        head += ["", "Left out (not on the quadratic simulator): " + ", ".join(f"`{f}`" for f in left) + "."]
     return "\n".join(head + [""] + body).rstrip() + "\n"
 
 
 def main(argv: list[str]) -> None:
+    from sdexp.cache import atomic_write
     results = Path(argv[0]) if argv else RESULTS
-    (results / "REPORT.md").write_text(render(results))
+    try:
+        text = render(results)   # every input checked before REPORT.md is touched
+        atomic_write(results / "REPORT.md", lambda tmp: tmp.write_text(text))
+    except UserError as err:
+        sys.stderr.write(f"sdexp: error: {err}\n")
+        sys.exit(EXIT_USER_ERROR)
+    except OSError as err:
+        sys.stderr.write(f"sdexp: error: cannot write {results / 'REPORT.md'}: {err.strerror or err}\n")
+        sys.exit(EXIT_USER_ERROR)
     sys.stdout.write(f"sdexp: wrote {results / 'REPORT.md'}\n")
 
 

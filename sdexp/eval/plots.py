@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdexp.figures import pyplot
+from sdexp.figures import pyplot, save_figure
 
 plt = pyplot()
 
@@ -31,8 +31,7 @@ def refinement_plot(table: pd.DataFrame, path: Path) -> None:
     axes[0].legend()
     fig.suptitle("Cantilever under its own weight: linear elements lock (too stiff), quadratic ones bend with one layer")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def bench_plot(table: pd.DataFrame, path: Path) -> None:
@@ -66,6 +65,8 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
         axes[2].semilogx(group["realtime_factor"], 100 * group["bend_error"], "o-", color=colors.get(element),
                          label=f"{group['drone'].iloc[0]}, {element}")
         for _, r in group.iterrows():
+            if not np.isfinite(r["realtime_factor"]):
+                continue   # blew up: no speed to place it at
             axes[2].annotate(f"{r['elements']}", (r["realtime_factor"], 100 * r["bend_error"]), fontsize=7,
                              textcoords="offset points", xytext=(4, 4))
     axes[2].axvline(10, color="r", ls="--", label="10x real time")
@@ -86,8 +87,7 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def drone_accuracy_plot(table: pd.DataFrame, path: Path) -> None:
@@ -113,5 +113,4 @@ def drone_accuracy_plot(table: pd.DataFrame, path: Path) -> None:
     axes[0].legend(fontsize=8)
     fig.suptitle("Every drone's default mesh under a fixed load: linear elements lock, quadratic ones bend")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -32,12 +32,12 @@ def _params(p):
 def check(run: Run) -> None:
     """Before the run folder is written: the sweep folder exists and holds finished jobs."""
     sweep_dir, _ = _params(run.params)
-    stats.find_jobs(sweep_dir)
+    stats.find_jobs(sweep_dir, run.out_dir)
 
 
 def run(run: Run) -> dict:
     sweep_dir, confidence = _params(run.params)
-    table = stats.aggregate(sweep_dir, confidence)
+    table = stats.aggregate(sweep_dir, confidence, run.out_dir)
     csv = run.table(table, "stats", float_format="%.6g")
     stats.plot(table, run.path("stats.png"), title=sweep_dir.resolve().name)
     groups = list(dict.fromkeys(table["group"]))

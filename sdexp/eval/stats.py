@@ -36,10 +36,13 @@ def _flat(node, prefix: str = "") -> dict:
     return {prefix[:-1]: node}
 
 
-def find_jobs(sweep_dir: str | Path) -> list[Path]:
+def find_jobs(sweep_dir: str | Path, own: Path | None = None) -> list[Path]:
     """The job folders under ``sweep_dir`` (itself included) that hold a metrics.json, in name
     order; report runs and hidden folders (submitit's .submitit) are not jobs. A missing folder,
-    a file, or a folder without any metrics.json is a UserError naming it."""
+    a file, a folder without any metrics.json, or one with an unfinished job (a job folder, with
+    its config.yaml or log, but no metrics.json: still running, killed or failed) is a UserError
+    naming it: statistics over the finished jobs only would read as the whole sweep's. ``own``:
+    the report's own run folder, when it lies inside the sweep (Hydra made it, with its log)."""
     root = Path(sweep_dir).expanduser()
     shown = root.resolve() if root.exists() else root.absolute()
     if not root.exists():
@@ -47,14 +50,20 @@ def find_jobs(sweep_dir: str | Path) -> list[Path]:
                         f"sweep_dir=<folder> (sdexp -m ... writes multirun/<experiment>/<time>)")
     if not root.is_dir():
         raise UserError(f"sweep folder {shown} is not a folder: give a multirun folder with sweep_dir=<folder>")
-    jobs = []
-    for metrics in sorted(root.rglob("metrics.json")):
-        folder = metrics.parent
+    jobs, unfinished = [], []
+    for folder in sorted({p.parent for pattern in ("metrics.json", "config.yaml", "*.log")
+                          for p in root.rglob(pattern)}):
         if any(part.startswith(".") for part in folder.relative_to(root).parts):
             continue
-        if _experiment_of(folder) == "report":
+        if _experiment_of(folder) == "report" or (own is not None and folder.resolve() == own.resolve()):
             continue
-        jobs.append(folder)
+        (jobs if (folder / "metrics.json").exists() else unfinished).append(folder)
+    if unfinished:
+        names = ", ".join(str(f.relative_to(root)) for f in unfinished[:5])
+        more = f" and {len(unfinished) - 5} more" if len(unfinished) > 5 else ""
+        raise UserError(f"sweep folder {shown} has {len(unfinished)} unfinished job{'s' if len(unfinished) > 1 else ''} "
+                        f"(no metrics.json): {names}{more}; finish {'them' if len(unfinished) > 1 else 'it'} "
+                        f"(rerun the sweep's command: finished jobs skip) or remove {'their folders' if len(unfinished) > 1 else 'its folder'}")
     if not jobs:
         raise UserError(f"sweep folder {shown} holds no finished job (no metrics.json under it): give the "
                         f"folder of a sweep whose jobs have finished with sweep_dir=<folder>")
@@ -140,10 +149,10 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def aggregate(sweep_dir: str | Path, confidence: float = 0.95) -> pd.DataFrame:
+def aggregate(sweep_dir: str | Path, confidence: float = 0.95, own: Path | None = None) -> pd.DataFrame:
     """One row per (group, metric): the group's config values (a column per dotted key), kind (number | count), n, mean,
     std, ci_low, ci_high, true (counts), summary and the method in words."""
-    folders = find_jobs(sweep_dir)
+    folders = find_jobs(sweep_dir, own)
     loaded = [load_job(f) for f in folders]
     varying, values = group_jobs([c for c, _ in loaded])
     names = short_names(varying)
@@ -223,7 +232,7 @@ def metric_groups(metrics: list[str], min_share: int = 3) -> dict[str, list[tupl
 def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24) -> None:
     """One panel per metric group (numbers only): each group of jobs' mean with its confidence
     interval as error bars, one series per controller / prefix."""
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     nums = table[table["kind"] == "number"]
@@ -234,8 +243,7 @@ def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24)
         fig, ax = plt.subplots(figsize=(5, 2))
         ax.text(0.5, 0.5, "no numeric metrics", ha="center", va="center")
         ax.set_axis_off()
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
+        save_figure(fig, path, dpi=120)
         return
     cols = min(3, len(panels))
     rows = math.ceil(len(panels) / cols)
@@ -269,5 +277,4 @@ def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24)
     method = nums["method"].iloc[0].split(":")[0] if len(nums) else ""
     fig.suptitle(f"{title}  (mean and {method} interval, up to n = {n} jobs per point)".strip(), fontsize=12)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)

@@ -395,7 +395,7 @@ def history_table(trained: TrainedNets) -> pd.DataFrame:
 
 
 def loss_plot(trained: TrainedNets, path: Path, title: str = "training curves") -> None:
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -412,5 +412,4 @@ def loss_plot(trained: TrainedNets, path: Path, title: str = "training curves") 
     ax.grid(alpha=0.3, which="both")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
