@@ -200,7 +200,7 @@ def job_config(cfg, name: str, seed: int, p: FleetParams):
 def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -> dict:
     """One drone and seed: learn, fly every task under every controller; written to ``path``.
     Never raises for the drone's sake: a failure is the job's ``error``, with its phase."""
-    from sdexp.cache import atomic_write
+    from sdexp.files import atomic_write
     from sdexp.eval.flights import Setup
 
     job_cfg = job_config(cfg, name, seed, p)
@@ -309,7 +309,7 @@ def run(run: Run) -> dict:
 def _invocations(out_dir: Path, wall: float, jobs_run: int) -> list[dict]:
     """The run's invocations so far, this one appended (``invocations.json``): a resumed fleet's
     wall time is the sum of its invocations', not the last one's."""
-    from sdexp.cache import atomic_write
+    from sdexp.files import atomic_write
 
     path = out_dir / "invocations.json"
     calls = json.loads(path.read_text()) if path.exists() else []
@@ -355,7 +355,7 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
     the median and how many seeds survived; a grey cell with a cross = no seed survived."""
     from matplotlib.colors import LinearSegmentedColormap
 
-    from sdexp.figures import pyplot
+    from sdexp.figures import pyplot, save_figure
     plt = pyplot()
 
     cmap = LinearSegmentedColormap.from_list("err", ["#1a9850", "#fee08b", "#d73027"])
@@ -390,8 +390,7 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
                  "(green 0, yellow = the task's tolerance, red 2x), survived/seeds; grey x: none survived",
                  fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.95))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def summary(params: FleetParams, metrics: dict) -> str:
