@@ -22,6 +22,7 @@ from sdexp.errors import UserError, one_line
 
 
 ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.physics.fem)
+PRECISIONS = ("float64", "float32")  # sim.precision: the elastic forces' arithmetic (sdexp.sim.physics.fem.PRECISIONS)
 
 # A field that says how a result is computed (threads, worker processes), not what: it is left
 # out of the cache keys of the artefacts it helps make (sdexp.cache.config_key).
@@ -79,6 +80,7 @@ class SimConfig:
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
     threads: int = field(default=0, metadata=NOT_KEY)   # FEM kernel threads; 0 = auto (2 for big meshes)
     element: str = "quadratic"           # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
+    precision: str = "float64"           # elastic forces in float64 | float32 (positions, velocities stay float64)
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.physics.effects), each {name|_target_, params}
 
 
@@ -448,6 +450,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(0 < s.stability_safety <= 1, "sim.stability_safety", s.stability_safety, "in (0, 1]")
     _check(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
     _check(s.element in ELEMENTS, "sim.element", s.element, " or ".join(ELEMENTS))
+    _check(s.precision in PRECISIONS, "sim.precision", s.precision, " or ".join(PRECISIONS))
     _check(s.friction >= 0, "sim.friction", s.friction, ">= 0")
     _check(s.gravity >= 0, "sim.gravity", s.gravity, ">= 0 m/s^2 (it points along -y)")
     _check(s.max_speed > 0, "sim.max_speed", s.max_speed, "> 0 m/s")

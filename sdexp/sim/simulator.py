@@ -92,7 +92,7 @@ class Simulator:
         boxes = list(c.obstacles)
         self.body = Body(self.fem, self.threads, self.drone.rotors, c.ground,
                          [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
-                         c.friction)
+                         c.friction, precision=c.precision)
         self.t = 0.0
         self.failure: Failure | None = None
         self.applied = np.zeros(self.drone.num_rotors)
