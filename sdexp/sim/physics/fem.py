@@ -364,9 +364,12 @@ def rest_quaternions(n: int) -> np.ndarray:
     return q
 
 
-def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: int = 0) -> float:
+def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: int = 0,
+                   mass: np.ndarray | None = None) -> float:
     """safety x 2 / omega_max, omega_max^2 = largest eigenvalue of M^-1 K at rest (power
-    iteration on the linearised force). Symplectic Euler is stable below 2 / omega_max."""
+    iteration on the linearised force). Symplectic Euler is stable below 2 / omega_max.
+    ``mass``: the inertial mass where it is not model.mass (sim.mass_scaling)."""
+    mass = model.mass if mass is None else mass
     rng = np.random.default_rng(seed)
     d = model.dim
     u = rng.standard_normal(model.rest.shape)
@@ -375,7 +378,7 @@ def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: i
     for _ in range(iterations):
         u /= np.linalg.norm(u)
         Ku = -elastic_forces(model, model.rest + eps * u) / eps
-        w = Ku / model.mass[:, None]
+        w = Ku / mass[:, None]
         lam_max = float(np.sum(u * w))
         u = w
     del d
