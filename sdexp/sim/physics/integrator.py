@@ -313,6 +313,13 @@ class Body:
                     n_boxes=len(self.boxes_min), mu=f.mu, lam=f.lam, ground=max(self.ground, -1e300),
                     friction=self.friction, **{k: a.ctypes.data for k, a in arrays.items()})
 
+    def forces_only(self, reps: int) -> None:
+        """The elastic forces alone, ``reps`` times on one thread into fbuf[0] (the benchmark's
+        kernel timing: sdexp.eval.bench_variants); the compiled step only."""
+        if self._step is None:
+            raise RuntimeError("Body.forces_only: needs the compiled kernels")
+        self._lib.forces_only(ctypes.byref(self._step), reps)
+
     def run(self, n_sub: int, dt: float, thrust=None, damping: float = 0.0, gravity: float = 0.0,
             deform_damping: float = 0.0):
         """n_sub substeps; returns (max inverted elements seen, max squared speed).

@@ -307,3 +307,39 @@ int advance(const Step *s, double *vmax2)
     *vmax2 = vmax;
     return worst;
 }
+
+/* For the benchmark (bench_sim): the element forces alone, reps times, on one thread into
+ * fbuf[0] (zeroed each time, as in a substep). Returns the inverted count of the last. */
+int forces_only(const Step *s, int64_t reps)
+{
+    int inverted = 0;
+    for (int64_t r = 0; r < reps; r++) {
+        memset(s->fbuf, 0, (size_t)(s->dim * s->nv) * sizeof(double));
+        inverted = element_forces(s, s->fbuf, 0, s->ne);
+    }
+    return inverted;
+}
+
+/* The peak probe (bench_sim): n rounds of multiply-adds a = a b + c on 16 registers' worth of
+ * independent accumulators (16 x 64 bytes: enough chains to hide the FMA latency on both FMA
+ * ports, few enough to stay in registers), 2 flops each, in double or float, compiled with the
+ * kernels' flags: what a perfectly vectorised loop reaches on this core with this compiler. */
+#define PROBE(NAME_, T) \
+double NAME_(int64_t n, double seed) \
+{ \
+    enum { ACC = 16 * 64 / (int)sizeof(T) }; \
+    T acc[ACC], b = (T)0.999999, c = (T)1e-7; \
+    for (int k = 0; k < ACC; k++) acc[k] = (T)seed + (T)k * (T)1e-6; \
+    for (int64_t i = 0; i < n; i++) { \
+        _Pragma("omp simd") \
+        for (int k = 0; k < ACC; k++) acc[k] = acc[k] * b + c; \
+    } \
+    double total = 0.0; \
+    for (int k = 0; k < ACC; k++) total += acc[k]; \
+    return total; \
+}
+PROBE(fma_probe, double)
+PROBE(fma_probe_f32, float)
+
+/* the accumulators per call of each probe: flops = 2 x this x n */
+int fma_probe_width(int single) { return single ? 16 * 64 / (int)sizeof(float) : 16 * 64 / (int)sizeof(double); }

@@ -118,6 +118,13 @@ def library():
     lib.advance.restype = ctypes.c_int
     lib.advance.argtypes = [ctypes.POINTER(Step), ctypes.POINTER(ctypes.c_double)]
     lib.block_size.restype = ctypes.c_int
+    lib.forces_only.restype = ctypes.c_int
+    lib.forces_only.argtypes = [ctypes.POINTER(Step), ctypes.c_int64]
+    for name in ("fma_probe", "fma_probe_f32"):   # the benchmark's peak probe
+        getattr(lib, name).restype = ctypes.c_double
+        getattr(lib, name).argtypes = [ctypes.c_int64, ctypes.c_double]
+    lib.fma_probe_width.restype = ctypes.c_int
+    lib.fma_probe_width.argtypes = [ctypes.c_int]
     # once per process (library() is cached): the run's log says which kernels stepped it
     log.info(f"sdexp: FEM kernels: compiled C ({path})")
     return lib

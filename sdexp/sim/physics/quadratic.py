@@ -175,7 +175,7 @@ def p2_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1, per_point, iterations,
                 R = _polar(F, q[4 * e + k], iterations, real)
             S = R.T @ F
             eps = real(0.5) * (S + S.T) - eye
-            T = real(2.0) * mu * eps + lam * np.trace(eps) * eye
+            T = real(2.0) * mu * eps + lam * (eps[0, 0] + eps[1, 1] + eps[2, 2]) * eye   # np.trace would be float64
             P = wV * (R @ T)
             Gt = P @ b.T                                   # columns: g_1, g_2, g_3
             for c in range(3):
