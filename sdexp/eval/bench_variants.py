@@ -52,14 +52,14 @@ def _hold(rng, drone) -> np.ndarray:
     return rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
 
 
-def time_variants(sims: dict[str, Simulator], seconds: float, seed: int, rounds: int = 15,
-                  block: int = 25) -> dict[str, dict]:
-    """Per variant: the force kernel's ns per element-substep (one thread, ``rounds`` timings)
-    and the whole step's wall time (blocks of ``block`` control steps under the same random
-    holds as time_drone), every variant's timing next to the others' in each round; with the
-    FMA probe of the variant's type timed in the same rounds. Medians and bests; the speedups
-    against the first variant are medians of the per-round ratios (the load moves slower than a
-    round, so a ratio within one round is what it leaves least touched)."""
+def time_variants(sims: dict[str, Simulator], seconds: float, seed: int, rounds: int = 60,
+                  block: int = 25, reps: int = 4) -> dict[str, dict]:
+    """Per variant: the force kernel's ns per element-substep (one thread, ``reps`` evaluations
+    a timing, a few ms: the variants take turns ``rounds`` times, so a load that changes over
+    seconds falls on all of them alike), with the FMA probe of its type every tenth round; then
+    the whole step's wall time in blocks of ``block`` control steps under the same random
+    holds as time_drone, the variants' blocks in turn. Medians and bests; the speedups against
+    the first variant are medians of the per-round (per-block) ratios."""
     names = list(sims)
     kern = {k: [] for k in names}
     peak = {k: [] for k in names}
@@ -68,25 +68,26 @@ def time_variants(sims: dict[str, Simulator], seconds: float, seed: int, rounds:
     holds = {k: _hold(rngs[k], sims[k].drone) for k in names}
     for k in names:
         sims[k].step(holds[k])   # warm up
-    n_blocks = max(1, int(round(seconds / sims[names[0]].cfg.control_dt / block)))
-    for r in range(max(rounds, n_blocks)):
+    for r in range(rounds):
         for k in names:
             sim = sims[k]
-            if r < rounds:
-                reps = max(1, sim.n_sub)
-                t0 = time.perf_counter()
-                sim.body.forces_only(reps)
-                kern[k].append(1e9 * (time.perf_counter() - t0) / (reps * sim.fem.n_elems))
+            t0 = time.perf_counter()
+            sim.body.forces_only(reps)
+            kern[k].append(1e9 * (time.perf_counter() - t0) / (reps * sim.fem.n_elems))
+            if r % 10 == 0:
                 peak[k].append(peak_gflops(sim.body.real is np.float32))
-            if r < n_blocks:
-                t0 = time.perf_counter()
-                for j in range(block):
-                    if (r * block + j) % 100 == 0:
-                        holds[k] = _hold(rngs[k], sim.drone)
-                    sim.step(holds[k])
-                    if not sim.alive:
-                        sim.reset()
-                steps[k].append((time.perf_counter() - t0) / block)
+    n_blocks = max(1, int(round(seconds / sims[names[0]].cfg.control_dt / block)))
+    for r in range(n_blocks):
+        for k in names:
+            sim = sims[k]
+            t0 = time.perf_counter()
+            for j in range(block):
+                if (r * block + j) % 100 == 0:
+                    holds[k] = _hold(rngs[k], sim.drone)
+                sim.step(holds[k])
+                if not sim.alive:
+                    sim.reset()
+            steps[k].append((time.perf_counter() - t0) / block)
     out, first = {}, names[0]
     for k in names:
         sim = sims[k]

@@ -323,3 +323,14 @@ static int NAME(forces_range_2d)(const double *restrict x, const int32_t *restri
     }
     return inverted;
 }
+
+/* The elastic forces of elements [e0, e1) of the step's body into f, by element kind. */
+static int NAME(element_forces)(const Step *s, double *f, int64_t e0, int64_t e1)
+{
+    const real *Bm = s->Bm, *vol = s->vol;
+    real *q = s->q;
+    return s->nodes == 10 ? NAME(p2_forces_blocked)(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
+         : s->nodes == 6 ? NAME(p2_forces_range_2d)(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1)
+         : s->dim == 3 ? NAME(forces_blocked)(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
+                       : NAME(forces_range_2d)(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1);
+}

@@ -18,6 +18,25 @@ static int omp_get_thread_num(void) { return 0; }
 #endif
 #define B 32  /* elements per SIMD block */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
+/* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
+ * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
+ * (forces_impl, p2_forces_blocked). nodes: per element (4 / 3 linear, 10 / 6 quadratic).
+ * single: Bm, vol and q are float and the forces are computed in float (sim.precision), else
+ * double. mass: the inertial mass (with any added by sim.mass_scaling); gravity_share: physical
+ * over inertial mass per vertex (gravity acts on the physical mass), NULL where they are equal. */
+typedef struct {
+    int64_t dim, nv, ne, nt, n_sub, n_rotors, n_boxes, nodes, single;
+    double dt, mu, lam, damping, deform_damping, gravity, ground, friction;
+    double *x, *v;
+    void *q;
+    double *fbuf, *ext, *dirs;
+    const double *fext, *minv, *mass;
+    const void *Bm, *vol;
+    const double *boxes_min, *boxes_max, *weights, *thrust, *gravity_share;
+    const int32_t *el;
+    const int64_t *face_ptr, *faces, *vert_ptr, *verts;
+} Step;
+
 /* The element force kernels, in double (sim.precision = float64) and in float (float32, names
  * ending _f32): one source, forces.h, included once per type. */
 #define real double
@@ -44,42 +63,11 @@ static int omp_get_thread_num(void) { return 0; }
 int block_size(void) { return B; }
 
 
-/* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
- * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
- * (forces_impl, p2_forces_blocked). nodes: per element (4 / 3 linear, 10 / 6 quadratic).
- * single: Bm, vol and q are float and the forces are computed in float (sim.precision), else
- * double. mass: the inertial mass (with any added by sim.mass_scaling); gravity_share: physical
- * over inertial mass per vertex (gravity acts on the physical mass), NULL where they are equal. */
-typedef struct {
-    int64_t dim, nv, ne, nt, n_sub, n_rotors, n_boxes, nodes, single;
-    double dt, mu, lam, damping, deform_damping, gravity, ground, friction;
-    double *x, *v;
-    void *q;
-    double *fbuf, *ext, *dirs;
-    const double *fext, *minv, *mass;
-    const void *Bm, *vol;
-    const double *boxes_min, *boxes_max, *weights, *thrust, *gravity_share;
-    const int32_t *el;
-    const int64_t *face_ptr, *faces, *vert_ptr, *verts;
-} Step;
 
-/* The elastic forces of elements [e0, e1) into f, by element kind and precision. */
-static int element_forces(const Step *s, double *f, int64_t e0, int64_t e1)
+/* The elastic forces of elements [e0, e1) into f, in the step's precision. */
+static int step_forces(const Step *s, double *f, int64_t e0, int64_t e1)
 {
-    if (s->single) {
-        const float *Bm = s->Bm, *vol = s->vol;
-        float *q = s->q;
-        return s->nodes == 10 ? p2_forces_blocked_f32(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
-             : s->nodes == 6 ? p2_forces_range_2d_f32(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1)
-             : s->dim == 3 ? forces_blocked_f32(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
-                           : forces_range_2d_f32(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1);
-    }
-    const double *Bm = s->Bm, *vol = s->vol;
-    double *q = s->q;
-    return s->nodes == 10 ? p2_forces_blocked(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
-         : s->nodes == 6 ? p2_forces_range_2d(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1)
-         : s->dim == 3 ? forces_blocked(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
-                       : forces_range_2d(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1);
+    return s->single ? element_forces_f32(s, f, e0, e1) : element_forces(s, f, e0, e1);
 }
 
 /* integrator.rotor_forces: thrust along each patch's area-weighted normal. */
@@ -275,7 +263,7 @@ int advance(const Step *s, double *vmax2)
         double *f = s->fbuf + d * nv * t, *my = sums + S_STRIDE * t;
         for (int64_t sub = 0; sub < s->n_sub; sub++) {
             memset(f, 0, (size_t)(d * nv) * sizeof(double));
-            inv[t] = e0 >= e1 ? 0 : element_forces(s, f, e0, e1);
+            inv[t] = e0 >= e1 ? 0 : step_forces(s, f, e0, e1);
             if (t == 0) rotor_forces(s);
             #pragma omp barrier
             if (t == 0) {
@@ -315,7 +303,7 @@ int forces_only(const Step *s, int64_t reps)
     int inverted = 0;
     for (int64_t r = 0; r < reps; r++) {
         memset(s->fbuf, 0, (size_t)(s->dim * s->nv) * sizeof(double));
-        inverted = element_forces(s, s->fbuf, 0, s->ne);
+        inverted = step_forces(s, s->fbuf, 0, s->ne);
     }
     return inverted;
 }
