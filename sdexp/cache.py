@@ -37,15 +37,22 @@ log = logging.getLogger(__name__)
 LOCK_DIR = ".locks"
 
 
+# A field added after caches were built, marked metadata={"key": KEY_UNLESS_DEFAULT}: it enters
+# the key only when set away from its default, so the artefacts of every earlier config (which
+# ran at that default) keep their keys and need no rebuilding (sim.precision, sim.mass_scaling).
+KEY_UNLESS_DEFAULT = "unless_default"
+
+
 def config_key(node: Any) -> Any:
     """A config dataclass as a cache key's payload: its fields, nested dataclasses alike, less
     those marked ``metadata={"key": False}`` (how a result is computed, not what: threads,
-    worker processes). Which artefact a field determines is the caller's to say (it passes the
+    worker processes) and those marked KEY_UNLESS_DEFAULT while at their default. Which artefact a field determines is the caller's to say (it passes the
     parts of the config that make the artefact); a change to what the fields mean or to the
     artefact is a bump of the caller's format version, never a special case here."""
     if dataclasses.is_dataclass(node) and not isinstance(node, type):
         return {f.name: config_key(getattr(node, f.name)) for f in dataclasses.fields(node)
-                if f.metadata.get("key", True)}
+                if f.metadata.get("key", True) is True
+                or (f.metadata.get("key") == KEY_UNLESS_DEFAULT and getattr(node, f.name) != f.default)}
     if isinstance(node, (list, tuple)):
         return [config_key(v) for v in node]
     if isinstance(node, dict):

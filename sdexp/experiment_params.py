@@ -230,6 +230,13 @@ class BenchSimParams(Params):
                                   # accuracy and substeps (no timing), the evidence behind each default resolution
     bend_load: float = nonnegative(2.0)   # N: the outer rotors' push (no net lift or tilting torque) of the accuracy load
     refine: List[float] = _param([1.5, 2.0, 3.0], lambda v: v > 0, "> 0")   # the converged reference: quadratic meshes at edge_length / these
+    # sim.precision and sim.mass_scaling on one drone's default quadratic mesh (null = none): the force
+    # kernel and the whole step timed with the variants alternated, a noise-free flight and an
+    # undamped free vibration of float32 against float64, the modes that scaling moves
+    variants_drone: Optional[str] = drone_choice("flower")
+    variants_seconds: float = positive(3.0)      # simulated seconds of each variant's step timing
+    deviation_seconds: float = positive(5.0)     # the noise-free float32 / float64 flight
+    mass_scaling: float = _param(0.005, lambda v: 0 < v <= 0.1, "in (0, 0.1]")   # the scaled variants' budget
 
     def check(self) -> None:
         if not set(self.elements) <= set(ELEMENTS):

@@ -124,15 +124,20 @@ def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
                    "experiment.params.seconds=0.05", "experiment.params.scaling_drone=rod",
                    "experiment.params.scaling_edges={linear: [], quadratic: [0.2]}",
                    "experiment.params.scaling_seconds=0.25", "experiment.params.resolution_factors=[2.0]",
+                   "experiment.params.variants_drone=rod", "experiment.params.variants_seconds=0.25",
+                   "experiment.params.deviation_seconds=0.25", "experiment.params.mass_scaling=0.02",
                    f"cache_dir={cache_dir}")
     metrics = run_experiment(cfg, tmp_path)
     table = pd.read_csv(tmp_path / "bench_sim.csv")
-    assert list(table["series"]) == ["drone", "drone", "resolution", "scaling"] and list(table["element"]) == [
-        "linear", "quadratic", "quadratic", "quadratic"]
+    assert list(table["series"]) == ["drone", "drone", "resolution", "scaling"] + ["variant"] * 4
+    assert list(table["element"]) == ["linear"] + ["quadratic"] * 7
+    # the variants: float32 stays on float64's flight; scaling buys a step for added inertia
+    assert metrics["rod_float32_position_deviation_end"] < 1e-5 and metrics["rod_float64_scaled_step_gain"] > 1
+    assert 0 < metrics["rod_float64_scaled_added_mass_fraction"] <= 0.02 and metrics["rod_float32_kernel_speedup"] > 0
     assert table["edge_length"].iloc[3] == 0.2 and (tmp_path / "bench_sim.png").exists()
     # the rod's default mesh: quadratic elements bend like the converged body, linear ones lock
     assert abs(metrics["rod_quadratic_bend_error"]) < 0.05 and metrics["rod_linear_bend_error"] < -0.2
-    assert np.isfinite(table["bend_error"]).all() and (table["blowups"].dropna() == 0).all()
+    assert np.isfinite(table["bend_error"][:4]).all() and (table["blowups"].dropna() == 0).all()
     assert metrics["rod_quadratic_realtime_factor"] > 0
     saved = OmegaConf.load(tmp_path / "config.yaml")
     assert saved.drone.name == "rod" and saved.cache_dir == cache_dir

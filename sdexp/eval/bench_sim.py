@@ -113,6 +113,10 @@ def run(run: Run) -> dict:
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
                              **response_errors(drone, ref, gravity, load)})
+    if p.variants_drone:
+        from sdexp.eval.bench_variants import run_variants
+        d = drone_config(cfg, p.variants_drone)
+        rows += run_variants(build_drone(d, cfg.cache_dir, "quadratic"), d, cfg, p)
     table = pd.DataFrame(rows)
     for c in SPEED:   # a blown-up run's null speeds: NaN in a numeric column, as the plot reads it
         table[c] = pd.to_numeric(table[c])
@@ -121,11 +125,18 @@ def run(run: Run) -> dict:
     show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
             "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
     log.info(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if p.variants_drone:
+        show = ["drone", "variant", "kernel_ns_per_element_substep", "kernel_speedup", "kernel_gflops", "peak_share",
+                "substeps_per_step", "realtime_factor", "step_speedup", "added_mass_fraction", "step_gain",
+                "frequency_change_max", "position_deviation_end", "travel", "bend_deviation_deg_max",
+                "bend_rms_deviation", "energy_drift"]
+        log.info(table[table["series"] == "variant"][show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     return metrics(rows)
 
 
 def metrics(rows: list[dict]) -> dict:
-    """metrics.json: each benchmarked drone's speed (null where it blew up), accuracy and blow-ups."""
+    """metrics.json: each benchmarked drone's speed (null where it blew up), accuracy and blow-ups;
+    each variant's speed-ups and deviations (sim.precision, sim.mass_scaling)."""
     out = {}
     for r in rows:
         if r["series"] == "drone":
@@ -135,4 +146,10 @@ def metrics(rows: list[dict]) -> dict:
             out[f"{tag}_bend_error"] = r["bend_error"]
             out[f"{tag}_compliance_error"] = r["compliance_error"]
             out[f"{tag}_blowups"] = r["blowups"]
+        if r["series"] == "variant":
+            tag = f"{r['drone']}_{r['variant'].replace(' ', '_')}"
+            for key in ("kernel_speedup", "step_speedup", "realtime_factor", "kernel_gflops", "peak_share",
+                        "step_gain", "added_mass_fraction", "frequency_change_max", "position_deviation_end",
+                        "bend_deviation_deg_max", "bend_rms_deviation", "energy_drift"):
+                out[f"{tag}_{key}"] = r[key]
     return out

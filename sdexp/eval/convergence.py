@@ -28,7 +28,6 @@ the finest bend and its spread to the next the uncertainty.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dataclasses import replace
@@ -37,8 +36,8 @@ from sdexp.cache import cached_arrays, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.sim.drone import build_drone
 from sdexp.sim.physics.fem import FemModel
+from sdexp.sim.physics.modes import rigid_modes, stiffness
 from sdexp.sim.rigid.geometry import hover_thrust, rigid_body
-from sdexp.sim.physics.quadratic import EDGES_2D, EDGES_3D, QUAD_2D, QUAD_3D
 from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
 from sdexp.sim.rigid.statics import outer_rotors
@@ -46,58 +45,6 @@ from sdexp.sim.rigid.statics import outer_rotors
 FORMAT = 7   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
                            # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)
-
-
-def shape_gradients(fem: FemModel) -> tuple[np.ndarray, np.ndarray]:
-    """Rest gradients of the shape functions at the quadrature points, (nq, ne, nodes, dim),
-    and the points' weights (nq,), for linear (one point) or quadratic elements."""
-    d = fem.dim
-    grad = np.concatenate([-fem.Bm.sum(axis=1, keepdims=True), fem.Bm], axis=1)   # grad L_j (ne, d+1, d)
-    if fem.order == 1:
-        return grad[None], np.ones(1)
-    rule, edges = (QUAD_3D, EDGES_3D) if d == 3 else (QUAD_2D, EDGES_2D)
-    out = []
-    for L in rule:
-        corners = (4 * L - 1)[None, :, None] * grad
-        mids = 4 * (L[edges[:, 0]][None, :, None] * grad[:, edges[:, 1]]
-                    + L[edges[:, 1]][None, :, None] * grad[:, edges[:, 0]])
-        out.append(np.concatenate([corners, mids], axis=1))
-    return np.stack(out), np.full(len(rule), 1.0 / len(rule))
-
-
-def stiffness(fem: FemModel, chunk: int = 4000) -> sp.csr_matrix:
-    """The stiffness of linear elasticity at rest, (nv dim)^2: the linearisation of the
-    co-rotated force at the rest shape (the rotation's derivative acts on zero stress there)."""
-    G, w = shape_gradients(fem)
-    d, n = fem.dim, fem.elems.shape[1]
-    rows, cols, vals = [], [], []
-    eye = np.eye(d)
-    for e0 in range(0, fem.n_elems, chunk):
-        sl = slice(e0, e0 + chunk)
-        K = np.zeros((len(fem.vol[sl]), n, d, n, d))
-        for g, wq in zip(G[:, sl], w):
-            Vw = (wq * fem.vol[sl])[:, None, None, None, None]
-            K += Vw * (fem.lam * np.einsum("eai,ebj->eaibj", g, g)
-                       + fem.mu * np.einsum("eak,ebk,ij->eaibj", g, g, eye)
-                       + fem.mu * np.einsum("eaj,ebi->eaibj", g, g))
-        dof = (fem.elems[sl][:, :, None] * d + np.arange(d)).reshape(len(K), -1)
-        rows.append(np.repeat(dof, n * d, axis=1).ravel())
-        cols.append(np.tile(dof, (1, n * d)).ravel())
-        vals.append(K.reshape(len(K), -1).ravel())
-    size = len(fem.rest) * d
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
-
-
-def rigid_modes(x: np.ndarray) -> np.ndarray:
-    """(nv dim, 6 | 3) translations and infinitesimal rotations about the centroid."""
-    nv, d = x.shape
-    r = x - x.mean(axis=0)
-    if d == 2:
-        return np.stack([np.tile([1.0, 0.0], nv), np.tile([0.0, 1.0], nv), np.c_[-r[:, 1], r[:, 0]].ravel()], 1)
-    modes = [np.tile(e, nv) for e in np.eye(3)]
-    for e in np.eye(3):
-        modes.append(np.cross(e, r).ravel())
-    return np.stack(modes, 1)
 
 
 def static_displacement(fem: FemModel, f: np.ndarray) -> np.ndarray:

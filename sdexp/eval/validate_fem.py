@@ -32,10 +32,12 @@ EB_ROOT = 1.8751040687  # first root of cos(x) cosh(x) = -1
 
 
 class FreeBody(Body):
-    """A FEM body with no rotors at its largest stable substep, for validation."""
+    """A FEM body with no rotors at its largest stable substep, for validation; ``precision``:
+    the elastic forces' arithmetic (sim.precision)."""
 
-    def __init__(self, fem: FemModel, safety: float = 0.8, pinned: np.ndarray | None = None):
-        super().__init__(fem, threads=1, pinned=pinned)
+    def __init__(self, fem: FemModel, safety: float = 0.8, pinned: np.ndarray | None = None,
+                 precision: str = "float64"):
+        super().__init__(fem, threads=1, pinned=pinned, precision=precision)
         self.dt = stable_substep(fem, safety)
 
     def run(self, n: int, damping: float = 0.0, gravity: float = 0.0) -> int:
@@ -90,10 +92,10 @@ def structured_beam(beam: Beam, dim: int, layers: int) -> tuple[np.ndarray, np.n
 
 
 def cantilever(beam: Beam, points: np.ndarray, elems: np.ndarray, periods: float = 4.0,
-               element: str = "linear") -> dict:
+               element: str = "linear", precision: str = "float64") -> dict:
     """Static tip sag and first bending frequency of the beam meshed by the linear mesh
-    (points, elems), which must span x in [0, length], with ``element`` elements on it;
-    nodes at x = 0 are clamped."""
+    (points, elems), which must span x in [0, length], with ``element`` elements on it, forces
+    in ``precision``; nodes at x = 0 are clamped."""
     if element == "quadratic":
         points, elems = quadratic_mesh(points, elems)
     dim = points.shape[1]
@@ -101,7 +103,7 @@ def cantilever(beam: Beam, points: np.ndarray, elems: np.ndarray, periods: float
     volume = beam.area(dim) * beam.length
     fem = build_fem(points, elems, density * volume, beam.youngs_modulus, beam.poisson_ratio)
     pinned = np.flatnonzero(points[:, 0] < 1e-9)
-    body = FreeBody(fem, pinned=pinned)
+    body = FreeBody(fem, pinned=pinned, precision=precision)
     tip = np.flatnonzero(points[:, 0] > beam.length - 1e-9)
     f_eb = beam.eb_frequency(dim)
     # dynamic relaxation: mass damping at twice the EB angular frequency decays the first mode
@@ -174,7 +176,7 @@ def run(run: Run) -> dict:
         for dim in (2, 3):
             for layers in layer_lists[f"{dim}d"]:
                 pts, el = structured_beam(beam, dim, layers)
-                res = cantilever(beam, pts, el, element=element)
+                res = cantilever(beam, pts, el, element=element, precision=cfg.sim.precision)
                 rows.append({"element": element, "mesh": f"structured {dim}D", "layers": layers,
                              "edge": beam.thickness / layers, "thickness_over_edge": layers, **res})
                 log.info(f"  {element} {dim}D {layers} layers, {len(el)} elements: sag error "
@@ -185,7 +187,7 @@ def run(run: Run) -> dict:
         v, f = _beam_surface(beam)
         pts, el = tet_mesh(v, f, edge)
         for element in p.layers:
-            res = cantilever(beam, pts, el, element=element)
+            res = cantilever(beam, pts, el, element=element, precision=cfg.sim.precision)
             rows.append({"element": element, "mesh": "pytetwild 3D", "layers": np.nan, "edge": edge,
                          "thickness_over_edge": beam.thickness / edge, **res})
             log.info(f"  {element} pytetwild at edge {edge} m, {len(el)} tets: sag error "

@@ -12,6 +12,7 @@ and the sensors (before the sensor noise). With no effects the step is what it w
 """
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -24,8 +25,12 @@ from sdexp.sim.drone import Drone
 from sdexp.sim.physics.effects import build_effects, overrides
 from sdexp.sim.physics.fem import stable_substep
 from sdexp.sim.physics.integrator import Body, extent
+from sdexp.sim.physics.modes import mass_scaling
+from sdexp.sim.physics.native import default_cache_dir
 from sdexp.sensing import Readings, decompose, State
 from sdexp.sim.sensors import add_noise, read_imus
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from sdexp.config import NoiseConfig, SimConfig
@@ -67,7 +72,12 @@ class Simulator:
         self._push = [e for e in self.effects if overrides(e, "body_forces")]
         self._sense = [e for e in self.effects if overrides(e, "sense")]
         fem, c, n = self.fem, self.cfg, self.noise
-        dt_stable = stable_substep(fem, c.stability_safety)
+        self.scaling = mass_scaling(fem, c.mass_scaling, default_cache_dir())
+        if c.mass_scaling > 0 and self.scaling.added is None:
+            log.warning(f"sim.mass_scaling = {c.mass_scaling:g}: no step gain for drone {drone.name} within this "
+                        f"budget (the first rung, x1.05, needs more added mass); running unscaled")
+        inertia = fem.mass if self.scaling.added is None else fem.mass + self.scaling.added
+        dt_stable = stable_substep(fem, c.stability_safety, mass=inertia)
         if not (np.isfinite(dt_stable) and dt_stable > 0):
             raise UserError(f"drone {drone.name}: no stable explicit substep for its mesh (largest eigenvalue of "
                             f"M^-1 K not finite and positive); change drone.mesh (edge_length / layers)")
@@ -92,7 +102,7 @@ class Simulator:
         boxes = list(c.obstacles)
         self.body = Body(self.fem, self.threads, self.drone.rotors, c.ground,
                          [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
-                         c.friction)
+                         c.friction, precision=c.precision, added_mass=self.scaling.added)
         self.t = 0.0
         self.failure: Failure | None = None
         self.applied = np.zeros(self.drone.num_rotors)

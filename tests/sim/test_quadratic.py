@@ -96,7 +96,7 @@ def test_one_rotation_per_element_would_leak_torque():
     torque = {}
     for per_point in (True, False):
         f, q = np.zeros_like(x), rest_quaternions(fem.n_rotations)
-        p2_range_3d(x, fem.elems, fem.Bm, fem.vol, fem.mu, fem.lam, q, f, 0, fem.n_elems, per_point, 200)
+        p2_range_3d(x, fem.elems, fem.Bm, fem.vol, fem.mu, fem.lam, q, f, 0, fem.n_elems, per_point, 200, np.float64)
         torque[per_point] = np.abs(np.cross(x, f).sum(axis=0)).max() / np.abs(f).max()
     assert torque[True] < 1e-12 and torque[False] > 1e-3
 

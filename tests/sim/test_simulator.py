@@ -130,6 +130,6 @@ def test_ground_stops_a_falling_drone_and_boxes_keep_vertices_out():
 def test_a_mesh_without_a_stable_substep_is_a_user_error_naming_the_mesh(plate, monkeypatch):
     from sdexp.errors import UserError
     import sdexp.sim.simulator as simulator
-    monkeypatch.setattr(simulator, "stable_substep", lambda fem, safety: float("nan"))
+    monkeypatch.setattr(simulator, "stable_substep", lambda fem, safety, mass=None: float("nan"))
     with pytest.raises(UserError, match=r"drone plate: no stable explicit substep.*drone\.mesh"):
         Simulator(plate, sim_cfg(), noise_cfg())

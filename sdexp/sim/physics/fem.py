@@ -20,7 +20,7 @@ import numba as nb
 import numpy as np
 
 from sdexp.sim.physics.native import library
-from sdexp.sim.physics.quadratic import ROTATION_PER_POINT, p2_range_2d, p2_range_3d
+from sdexp.sim.physics.quadratic import ROTATION_PER_POINT, p2_range_2d, p2_range_3d, rotation
 
 POLAR_ITERATIONS = 2
 
@@ -98,26 +98,22 @@ def build_fem(rest: np.ndarray, elems: np.ndarray, total_mass: float,
 # halve the speed (DESIGN.md).
 # --------------------------------------------------------------------------------------------
 
-@nb.njit(inline="always")
-def _rotation(qw, qx, qy, qz):
-    """Row-major entries of the rotation matrix of a unit quaternion."""
-    return (1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
-            2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
-            2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
-
-
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
-def corotated_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1):
+def corotated_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1, real):
     """Add the nodal forces of tets [e0, e1) into f (nv, 3); update their warm-start
     quaternions q (ne, 4). Returns the number of inverted tets (det F <= 0).
-    The reference for kernels.c, which runs the same arithmetic about 3x faster."""
+    The reference for kernels.c, which runs the same arithmetic about 3x faster.
+    ``real`` (np.float64 | np.float32, sim.precision): the type of the arithmetic and of Bm, vol
+    and q; positions and f stay float64, edge vectors are rounded after the subtraction (forces.h)."""
     inverted = 0
+    half, one, two, tiny = real(0.5), real(1.0), real(2.0), real(1e-9)
+    mu = real(mu); lam = real(lam)
     for e in range(e0, e1):
         i0 = elems[e, 0]; i1 = elems[e, 1]; i2 = elems[e, 2]; i3 = elems[e, 3]
         x0 = x[i0, 0]; y0 = x[i0, 1]; z0 = x[i0, 2]
-        d1x = x[i1, 0] - x0; d1y = x[i1, 1] - y0; d1z = x[i1, 2] - z0
-        d2x = x[i2, 0] - x0; d2y = x[i2, 1] - y0; d2z = x[i2, 2] - z0
-        d3x = x[i3, 0] - x0; d3y = x[i3, 1] - y0; d3z = x[i3, 2] - z0
+        d1x = real(x[i1, 0] - x0); d1y = real(x[i1, 1] - y0); d1z = real(x[i1, 2] - z0)
+        d2x = real(x[i2, 0] - x0); d2y = real(x[i2, 1] - y0); d2z = real(x[i2, 2] - z0)
+        d3x = real(x[i3, 0] - x0); d3y = real(x[i3, 1] - y0); d3z = real(x[i3, 2] - z0)
         b00 = Bm[e, 0, 0]; b01 = Bm[e, 0, 1]; b02 = Bm[e, 0, 2]
         b10 = Bm[e, 1, 0]; b11 = Bm[e, 1, 1]; b12 = Bm[e, 1, 2]
         b20 = Bm[e, 2, 0]; b21 = Bm[e, 2, 1]; b22 = Bm[e, 2, 2]
@@ -136,35 +132,35 @@ def corotated_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1):
         inverted += 1 if det <= 0.0 else 0
         qw = q[e, 0]; qx = q[e, 1]; qy = q[e, 2]; qz = q[e, 3]
         for _ in range(POLAR_ITERATIONS):
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation(qw, qx, qy, qz, real)
             # omega = sum_i R_col_i x F_col_i / |sum_i R_col_i . F_col_i|
             wx = (r10 * f20 - r20 * f10) + (r11 * f21 - r21 * f11) + (r12 * f22 - r22 * f12)
             wy = (r20 * f00 - r00 * f20) + (r21 * f01 - r01 * f21) + (r22 * f02 - r02 * f22)
             wz = (r00 * f10 - r10 * f00) + (r01 * f11 - r11 * f01) + (r02 * f12 - r12 * f02)
             den = abs(r00 * f00 + r10 * f10 + r20 * f20 + r01 * f01 + r11 * f11 + r21 * f21
-                      + r02 * f02 + r12 * f12 + r22 * f22) + 1e-9
+                      + r02 * f02 + r12 * f12 + r22 * f22) + tiny
             wx /= den; wy /= den; wz /= den
             # q <- normalize((1, omega/2) * q): the first-order rotation update, branch- and
             # trig-free; it converges to the same fixed point (omega = 0 at the polar rotation)
-            ax = 0.5 * wx; ay = 0.5 * wy; az = 0.5 * wz
+            ax = half * wx; ay = half * wy; az = half * wz
             nw = qw - ax * qx - ay * qy - az * qz
             nx = qx + ax * qw + ay * qz - az * qy
             ny = qy - ax * qz + ay * qw + az * qx
             nz = qz + ax * qy - ay * qx + az * qw
-            inv = 1.0 / np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+            inv = one / np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
             qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation(qw, qx, qy, qz, real)
         q[e, 0] = qw; q[e, 1] = qx; q[e, 2] = qy; q[e, 3] = qz
         # S = R^T F; strain = sym(S) - I
         s00 = r00 * f00 + r10 * f10 + r20 * f20
         s11 = r01 * f01 + r11 * f11 + r21 * f21
         s22 = r02 * f02 + r12 * f12 + r22 * f22
-        s01 = 0.5 * ((r00 * f01 + r10 * f11 + r20 * f21) + (r01 * f00 + r11 * f10 + r21 * f20))
-        s02 = 0.5 * ((r00 * f02 + r10 * f12 + r20 * f22) + (r02 * f00 + r12 * f10 + r22 * f20))
-        s12 = 0.5 * ((r01 * f02 + r11 * f12 + r21 * f22) + (r02 * f01 + r12 * f11 + r22 * f21))
-        e00 = s00 - 1.0; e11 = s11 - 1.0; e22 = s22 - 1.0
+        s01 = half * ((r00 * f01 + r10 * f11 + r20 * f21) + (r01 * f00 + r11 * f10 + r21 * f20))
+        s02 = half * ((r00 * f02 + r10 * f12 + r20 * f22) + (r02 * f00 + r12 * f10 + r22 * f20))
+        s12 = half * ((r01 * f02 + r11 * f12 + r21 * f22) + (r02 * f01 + r12 * f11 + r22 * f21))
+        e00 = s00 - one; e11 = s11 - one; e22 = s22 - one
         tr = lam * (e00 + e11 + e22)
-        m2 = 2.0 * mu
+        m2 = two * mu
         t00 = m2 * e00 + tr; t11 = m2 * e11 + tr; t22 = m2 * e22 + tr
         t01 = m2 * s01; t02 = m2 * s02; t12 = m2 * s12
         # P = R T, scaled by -V
@@ -202,22 +198,34 @@ _C_SIGNATURE = nb.types.int32(_ptr, _ptr, _ptr, _ptr, nb.types.float64, nb.types
                               nb.types.int64, nb.types.int64, nb.types.int64)
 
 
-@nb.cfunc(_C_SIGNATURE, cache=True)
-def corotated_cfunc_3d(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt):
-    """kernels.c's corotated_forces_3d in numba, behind the same C signature: the fallback
-    when no compiler works (one thread; chunk t still goes to buffer t)."""
+@nb.njit(cache=True)
+def _linear_chunks(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt, real):
+    """The body of the cfuncs below: chunk t of the tets into buffer t, on one thread."""
     xs = nb.carray(x, (nv, 3), np.float64)
     el = nb.carray(elems, (ne, 4), np.int32)
-    bm = nb.carray(Bm, (ne, 3, 3), np.float64)
-    vo = nb.carray(vol, (ne,), np.float64)
-    qs = nb.carray(q, (ne, 4), np.float64)
+    bm = nb.carray(Bm, (ne, 3, 3), real)
+    vo = nb.carray(vol, (ne,), real)
+    qs = nb.carray(q, (ne, 4), real)
     fb = nb.carray(fbuf, (nt, nv, 3), np.float64)
     chunk = (ne + nt - 1) // nt
     inverted = 0
     for t in range(nt):
         fb[t] = 0.0
-        inverted += corotated_range_3d(xs, el, bm, vo, mu, lam, qs, fb[t], t * chunk, min(ne, (t + 1) * chunk))
+        inverted += corotated_range_3d(xs, el, bm, vo, mu, lam, qs, fb[t], t * chunk, min(ne, (t + 1) * chunk), real)
     return inverted
+
+
+@nb.cfunc(_C_SIGNATURE, cache=True)
+def corotated_cfunc_3d(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt):
+    """kernels.c's corotated_forces_3d in numba, behind the same C signature: the fallback
+    when no compiler works (one thread; chunk t still goes to buffer t)."""
+    return _linear_chunks(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt, np.float64)
+
+
+@nb.cfunc(_C_SIGNATURE, cache=True)
+def corotated_cfunc_3d_f32(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt):
+    """corotated_cfunc_3d in float32 (kernels.c's corotated_forces_3d_f32): Bm, vol, q float32."""
+    return _linear_chunks(x, elems, Bm, vol, mu, lam, q, fbuf, nv, ne, nt, np.float32)
 
 
 @nb.njit(cache=True)
@@ -229,27 +237,29 @@ def elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf):
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
-def corotated_range_2d(x, elems, Bm, vol, mu, lam, f, e0, e1):
+def corotated_range_2d(x, elems, Bm, vol, mu, lam, f, e0, e1, real):
     """Triangle version of corotated_range_3d (the 2D rotation is exact, no warm start)."""
     inverted = 0
+    half, one, two = real(0.5), real(1.0), real(2.0)
+    mu = real(mu); lam = real(lam)
     for e in range(e0, e1):
         i0 = elems[e, 0]; i1 = elems[e, 1]; i2 = elems[e, 2]
-        d1x = x[i1, 0] - x[i0, 0]; d1y = x[i1, 1] - x[i0, 1]
-        d2x = x[i2, 0] - x[i0, 0]; d2y = x[i2, 1] - x[i0, 1]
+        d1x = real(x[i1, 0] - x[i0, 0]); d1y = real(x[i1, 1] - x[i0, 1])
+        d2x = real(x[i2, 0] - x[i0, 0]); d2y = real(x[i2, 1] - x[i0, 1])
         b00 = Bm[e, 0, 0]; b01 = Bm[e, 0, 1]; b10 = Bm[e, 1, 0]; b11 = Bm[e, 1, 1]
         f00 = d1x * b00 + d2x * b10; f01 = d1x * b01 + d2x * b11
         f10 = d1y * b00 + d2y * b10; f11 = d1y * b01 + d2y * b11
         inverted += 1 if f00 * f11 - f01 * f10 <= 0.0 else 0
         # the polar rotation of a 2x2 F, exactly and without trig
         c = f00 + f11; s = f10 - f01
-        inv_n = 1.0 / np.sqrt(c * c + s * s + 1e-300)
+        inv_n = one / np.sqrt(c * c + s * s + real(1e-30))
         c *= inv_n; s *= inv_n
         # S = R^T F with R = [[c, -s], [s, c]]
         s00 = c * f00 + s * f10; s11 = -s * f01 + c * f11
-        s01 = 0.5 * ((c * f01 + s * f11) + (-s * f00 + c * f10))
-        e00 = s00 - 1.0; e11 = s11 - 1.0
+        s01 = half * ((c * f01 + s * f11) + (-s * f00 + c * f10))
+        e00 = s00 - one; e11 = s11 - one
         tr = lam * (e00 + e11)
-        t00 = 2.0 * mu * e00 + tr; t11 = 2.0 * mu * e11 + tr; t01 = 2.0 * mu * s01
+        t00 = two * mu * e00 + tr; t11 = two * mu * e11 + tr; t01 = two * mu * s01
         V = -vol[e]
         p00 = V * (c * t00 - s * t01); p01 = V * (c * t01 - s * t11)
         p10 = V * (s * t00 + c * t01); p11 = V * (s * t01 + c * t11)
@@ -262,7 +272,7 @@ def corotated_range_2d(x, elems, Bm, vol, mu, lam, f, e0, e1):
 
 
 @nb.njit(parallel=True, cache=True)
-def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf):
+def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf, real):
     """elastic_forces_3d for triangles (numba is fast enough here)."""
     ne = elems.shape[0]
     nt = fbuf.shape[0]
@@ -270,7 +280,7 @@ def elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf):
     inverted = 0
     for t in nb.prange(nt):
         fbuf[t] = 0.0
-        inverted += corotated_range_2d(x, elems, Bm, vol, mu, lam, fbuf[t], t * chunk, min(ne, (t + 1) * chunk))
+        inverted += corotated_range_2d(x, elems, Bm, vol, mu, lam, fbuf[t], t * chunk, min(ne, (t + 1) * chunk), real)
     return inverted
 
 
@@ -279,43 +289,60 @@ class Kernels:
     """The kernels that run: ``library``, the compiled kernels.c (sdexp.sim.physics.native) whose
     ``advance`` steps a whole Body, or None where it cannot be built; ``forces_3d``, the linear 3D
     force kernel with kernels.c's C signature (the compiled one, or else the numba cfunc) for
-    the numba step and for elastic_forces."""
+    the numba step and for elastic_forces; ``forces_3d_f32`` the same in float32."""
     library: object
     forces_3d: object
+    forces_3d_f32: object
+
+    def linear_3d(self, real):
+        """The linear 3D force kernel in ``real`` (np.float64 | np.float32) arithmetic."""
+        return self.forces_3d_f32 if real is np.float32 else self.forces_3d
 
 
 def kernels() -> Kernels:
     """The one place that picks compiled or numba kernels (the library is built and loaded once
     per process, and logs which it is)."""
     lib = library()
-    return Kernels(lib, corotated_cfunc_3d.ctypes if lib is None else lib.corotated_forces_3d)
+    if lib is None:
+        return Kernels(None, corotated_cfunc_3d.ctypes, corotated_cfunc_3d_f32.ctypes)
+    return Kernels(lib, lib.corotated_forces_3d, lib.corotated_forces_3d_f32)
+
+
+PRECISIONS = {"float64": np.float64, "float32": np.float32}   # sim.precision: the force arithmetic
+
+
+def element_data(model: FemModel, real) -> tuple[np.ndarray, np.ndarray]:
+    """(Bm, vol) in the force kernels' type ``real``: rounded once, not every substep."""
+    return np.ascontiguousarray(model.Bm, dtype=real), np.ascontiguousarray(model.vol, dtype=real)
 
 
 def elastic_forces(model: FemModel, x: np.ndarray, q: np.ndarray | None = None,
-                   kernel=None) -> np.ndarray:
+                   kernel=None, real=np.float64) -> np.ndarray:
     """Total elastic force on every vertex (nv, dim), for tests and the stability estimate
     (the simulator's loop fuses this with integration). ``q``: warm-start quaternions
-    (model.n_rotations, 4), updated. ``kernel``: a C-signature linear 3D kernel, by default the
-    compiled one; quadratic elements use the numba reference (kernels.c runs them in the step)."""
+    (model.n_rotations, 4) of type ``real``, updated. ``kernel``: a C-signature linear 3D kernel,
+    by default the compiled one; quadratic elements use the numba reference (kernels.c runs
+    them in the step). ``real``: the arithmetic (sim.precision)."""
     fbuf = np.zeros((1,) + x.shape)
     if model.dim == 3:
-        q = rest_quaternions(model.n_rotations) if q is None else q
-    element_forces(kernel or kernels().forces_3d, x, model.elems, model.Bm, model.vol,
-                   model.mu, model.lam, q if model.dim == 3 else np.zeros((0, 4)), fbuf)
+        q = rest_quaternions(model.n_rotations).astype(real) if q is None else q
+    Bm, vol = element_data(model, real)
+    element_forces(kernel or kernels().linear_3d(real), x, model.elems, Bm, vol,
+                   model.mu, model.lam, q if model.dim == 3 else np.zeros((0, 4), real), fbuf, real)
     return fbuf[0]
 
 
 @nb.njit(cache=True)
-def element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf):
+def element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf, real):
     """Elastic forces of any element kind into one buffer per thread (fbuf (nt, nv, dim));
     the numba step (integrator.advance) and elastic_forces call this. Linear 3D runs ``kernel``
-    (C signature); quadratic elements their numba reference, one chunk per buffer.
-    Returns the number of inverted elements."""
+    (C signature, of Bm's type); quadratic elements their numba reference, one chunk per buffer.
+    ``real``: the arithmetic, Bm's, vol's and q's type. Returns the number of inverted elements."""
     nodes = elems.shape[1]
     if nodes == 4:
         return elastic_forces_3d(kernel, x, elems, Bm, vol, mu, lam, q, fbuf)
     if nodes == 3:
-        return elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf)
+        return elastic_forces_2d(x, elems, Bm, vol, mu, lam, fbuf, real)
     ne = elems.shape[0]
     nt = fbuf.shape[0]
     chunk = (ne + nt - 1) // nt
@@ -325,9 +352,9 @@ def element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf):
         e0, e1 = t * chunk, min(ne, (t + 1) * chunk)
         if nodes == 10:
             inverted += p2_range_3d(x, elems, Bm, vol, mu, lam, q, fbuf[t], e0, e1,
-                                    ROTATION_PER_POINT, POLAR_ITERATIONS)
+                                    ROTATION_PER_POINT, POLAR_ITERATIONS, real)
         else:
-            inverted += p2_range_2d(x, elems, Bm, vol, mu, lam, fbuf[t], e0, e1)
+            inverted += p2_range_2d(x, elems, Bm, vol, mu, lam, fbuf[t], e0, e1, real)
     return inverted
 
 
@@ -337,9 +364,12 @@ def rest_quaternions(n: int) -> np.ndarray:
     return q
 
 
-def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: int = 0) -> float:
+def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: int = 0,
+                   mass: np.ndarray | None = None) -> float:
     """safety x 2 / omega_max, omega_max^2 = largest eigenvalue of M^-1 K at rest (power
-    iteration on the linearised force). Symplectic Euler is stable below 2 / omega_max."""
+    iteration on the linearised force). Symplectic Euler is stable below 2 / omega_max.
+    ``mass``: the inertial mass where it is not model.mass (sim.mass_scaling)."""
+    mass = model.mass if mass is None else mass
     rng = np.random.default_rng(seed)
     d = model.dim
     u = rng.standard_normal(model.rest.shape)
@@ -348,7 +378,7 @@ def stable_substep(model: FemModel, safety: float, iterations: int = 60, seed: i
     for _ in range(iterations):
         u /= np.linalg.norm(u)
         Ku = -elastic_forces(model, model.rest + eps * u) / eps
-        w = Ku / model.mass[:, None]
+        w = Ku / mass[:, None]
         lam_max = float(np.sum(u * w))
         u = w
     del d

@@ -10,7 +10,7 @@ import ctypes
 import numba as nb
 import numpy as np
 
-from sdexp.sim.physics.fem import FemModel, element_forces, kernels, rest_quaternions
+from sdexp.sim.physics.fem import PRECISIONS, FemModel, element_data, element_forces, kernels, rest_quaternions
 from sdexp.sim.physics.native import Step, blocked
 
 
@@ -119,10 +119,12 @@ def damp_deformation(x, v, mass, minv, keep):
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
 def integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gravity, ground, boxes_min, boxes_max,
-              friction):
+              friction, gravity_share):
     """Symplectic Euler with implicit mass-proportional damping, then contact projection.
     ``fext`` (nv, dim): external forces other than thrust (effects' body hooks), held over
-    the control step; zeros when no effect pushes on the body.
+    the control step; zeros when no effect pushes on the body. ``mass``, ``minv``: the inertial
+    mass; ``gravity_share`` (nv,): physical over inertial mass (sim.mass_scaling; gravity pulls
+    on the physical mass).
     ``ground`` is -inf when there is no ground; minv = 0 pins a vertex. Serial: per vertex it
     is a few dozen flops, less than the cost of a parallel region on meshes this size.
     Returns the largest squared speed."""
@@ -140,7 +142,7 @@ def integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gr
             if dim == 3:
                 fz += fbuf[t, i, 2]
         mi = minv[i]
-        g = gravity if mi > 0.0 else 0.0
+        g = gravity * gravity_share[i] if mi > 0.0 else 0.0
         v[i, 0] = (v[i, 0] + dt * fx * mi) * scale
         v[i, 1] = (v[i, 1] + dt * (fy * mi - g)) * scale
         if dim == 3:
@@ -204,18 +206,18 @@ def integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gr
 @nb.njit(cache=True)
 def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, mass, damping,
             deform_damping, gravity, ground, boxes_min, boxes_max, friction, tri_ptr, tris, vert_ptr, verts,
-            weights, thrust, ext, dirs, fext):
+            weights, thrust, ext, dirs, fext, gravity_share, real):
     """Run n_sub substeps; one force buffer per thread in fbuf (nt, nv, dim). ``kernel``: the
-    C-signature 3D force kernel (sdexp.sim.physics.native).
+    C-signature 3D force kernel (sdexp.sim.physics.native) in ``real``, the force arithmetic.
     Returns (max inverted elements seen, max squared speed)."""
     worst = 0
     vmax2 = 0.0
     dim = x.shape[1]
     for _ in range(n_sub):
-        worst = max(worst, element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf))
+        worst = max(worst, element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf, real))
         rotor_forces(x, tri_ptr, tris, vert_ptr, verts, weights, thrust, ext, dirs)
         vmax2 = max(vmax2, integrate(x, v, fbuf, minv, mass, ext, fext, dt, damping, deform_damping, gravity, ground,
-                                     boxes_min, boxes_max, friction))
+                                     boxes_min, boxes_max, friction, gravity_share))
     return worst, vmax2
 
 
@@ -229,18 +231,25 @@ class Body:
     pointers to them (checked at every ``run``). q is the compiled 3D step's blocked layout
     there: set and read it through ``set_rotation`` and ``quaternions``.
 
-    ``threads`` sets how many force buffers (and threads) the element loop uses."""
+    ``threads`` sets how many force buffers (and threads) the element loop uses. ``precision``
+    (sim.precision): the elastic forces' arithmetic, float64 or float32; the state (x, v) and
+    the force sums stay float64, the element data and q are kept in the precision's type.
+    ``added_mass`` (nv,): inertia added to the lumped mass (sim.mass_scaling); gravity keeps
+    pulling on fem.mass."""
 
     def __init__(self, fem: FemModel, threads: int = 1, rotors=None, ground: float | None = None,
                  boxes_min=None, boxes_max=None, friction: float = 0.0, pinned=None,
-                 compiled: bool = True):
+                 compiled: bool = True, precision: str = "float64", added_mass=None):
         d = fem.dim
         self.fem = fem
+        self.real = PRECISIONS[precision]
         self.x = fem.rest.copy()
         self.v = np.zeros_like(self.x)
-        self.q = rest_quaternions(fem.n_rotations) if d == 3 else np.zeros((0, 4))
+        self.q = rest_quaternions(fem.n_rotations).astype(self.real) if d == 3 else np.zeros((0, 4), self.real)
         self.fbuf = np.zeros((threads,) + self.x.shape)
-        self.minv = 1.0 / fem.mass
+        self.mass = fem.mass if added_mass is None else fem.mass + added_mass   # inertial
+        self.gravity_share = fem.mass / self.mass
+        self.minv = 1.0 / self.mass
         if pinned is not None:
             self.minv[pinned] = 0.0
         self.ext = np.zeros_like(self.x)
@@ -256,7 +265,7 @@ class Body:
         self.thrust = np.zeros(m)
         self._kernels = kernels()
         self._lib = self._kernels.library if compiled else None   # compiled=False: the numba reference step
-        self._elements = (fem.elems, fem.Bm, fem.vol)
+        self._elements = (fem.elems, *element_data(fem, self.real))
         if d == 3 and self._lib is not None:
             self.q, self._elements = self._blocked()
         self._step = self._bind() if self._lib is not None else None
@@ -270,7 +279,8 @@ class Body:
         q = blocked(self.q.reshape(f.n_elems, 4 * per), b, pad=np.tile([1.0, 0.0, 0.0, 0.0], per))
         el = np.zeros((q.shape[0] * b, f.elems.shape[1]), np.int32)
         el[:f.n_elems] = f.elems
-        return q, (el, blocked(f.Bm.reshape(f.n_elems, 9), b), blocked(f.vol, b))
+        _, Bm, vol = self._elements
+        return q, (el, blocked(Bm.reshape(f.n_elems, 9), b), blocked(vol, b))
 
     def set_rotation(self, q) -> None:
         """Every element's warm-start rotation to the quaternion q (w, x, y, z)."""
@@ -289,18 +299,26 @@ class Body:
         f, d = self.fem, self.fem.dim
         el, Bm, vol = self._elements
         arrays = dict(x=self.x, v=self.v, q=self.q, fbuf=self.fbuf, ext=self.ext, dirs=self.dirs,
-                      fext=self.fext, minv=self.minv, mass=f.mass, Bm=Bm, vol=vol,
+                      fext=self.fext, minv=self.minv, mass=self.mass, Bm=Bm, vol=vol,
                       boxes_min=self.boxes_min, boxes_max=self.boxes_max, weights=self.rotors[4],
-                      thrust=self.thrust, el=el, face_ptr=self.rotors[0], faces=self.rotors[1],
-                      vert_ptr=self.rotors[2], verts=self.rotors[3])
-        want = {"el": np.int32, "face_ptr": np.int64, "faces": np.int64, "vert_ptr": np.int64, "verts": np.int64}
+                      thrust=self.thrust, gravity_share=self.gravity_share, el=el, face_ptr=self.rotors[0],
+                      faces=self.rotors[1], vert_ptr=self.rotors[2], verts=self.rotors[3])
+        want = {"el": np.int32, "face_ptr": np.int64, "faces": np.int64, "vert_ptr": np.int64, "verts": np.int64,
+                "q": self.real, "Bm": self.real, "vol": self.real}
         for name, a in arrays.items():
             if not (a.flags.c_contiguous and a.dtype == want.get(name, np.float64)):
                 raise TypeError(f"Body.{name}: needs a C-contiguous {np.dtype(want.get(name, np.float64))} array")
         return Step(dim=d, nv=len(self.x), ne=f.n_elems, nt=self.fbuf.shape[0], n_rotors=len(self.dirs),
-                    nodes=f.elems.shape[1],
+                    nodes=f.elems.shape[1], single=int(self.real is np.float32),
                     n_boxes=len(self.boxes_min), mu=f.mu, lam=f.lam, ground=max(self.ground, -1e300),
                     friction=self.friction, **{k: a.ctypes.data for k, a in arrays.items()})
+
+    def forces_only(self, reps: int) -> None:
+        """The elastic forces alone, ``reps`` times on one thread into fbuf[0] (the benchmark's
+        kernel timing: sdexp.eval.bench_variants); the compiled step only."""
+        if self._step is None:
+            raise RuntimeError("Body.forces_only: needs the compiled kernels")
+        self._lib.forces_only(ctypes.byref(self._step), reps)
 
     def run(self, n_sub: int, dt: float, thrust=None, damping: float = 0.0, gravity: float = 0.0,
             deform_damping: float = 0.0):
@@ -311,10 +329,11 @@ class Body:
         self.thrust[:] = 0.0 if thrust is None else thrust
         if self._step is None:
             nb.set_num_threads(min(self.fbuf.shape[0], nb.config.NUMBA_NUM_THREADS))
-            return advance(self._kernels.forces_3d, n_sub, dt, self.x, self.v, self.q, self.fbuf, f.elems,
-                           f.Bm, f.vol, f.mu, f.lam, self.minv, f.mass, damping, deform_damping, gravity,
+            el, Bm, vol = self._elements
+            return advance(self._kernels.linear_3d(self.real), n_sub, dt, self.x, self.v, self.q, self.fbuf, el,
+                           Bm, vol, f.mu, f.lam, self.minv, self.mass, damping, deform_damping, gravity,
                            self.ground, self.boxes_min, self.boxes_max, self.friction, *self.rotors,
-                           self.thrust, self.ext, self.dirs, self.fext)
+                           self.thrust, self.ext, self.dirs, self.fext, self.gravity_share, self.real)
         s = self._step
         now = tuple(a.__array_interface__["data"][0] for a in (self.x, self.v, self.q, self.fext))
         if (s.x, s.v, s.q, s.fext) != now:

@@ -27,6 +27,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).with_name("kernels.c")
+HEADERS = (Path(__file__).with_name("forces.h"),)   # included by kernels.c: part of the build's hash
 FLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-ffast-math", "-fopenmp",
          "-shared", "-fPIC"]
 _P, _D, _I = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
@@ -35,12 +36,13 @@ SIGNATURE = ctypes.CFUNCTYPE(ctypes.c_int, _P, _P, _P, _P, _D, _D, _P, _P, _I, _
 
 class Step(ctypes.Structure):
     """kernels.c's Step: one body and one control step of it (pointers into its arrays)."""
-    _fields_ = ([(n, _I) for n in ("dim", "nv", "ne", "nt", "n_sub", "n_rotors", "n_boxes", "nodes")]
+    _fields_ = ([(n, _I) for n in ("dim", "nv", "ne", "nt", "n_sub", "n_rotors", "n_boxes", "nodes",
+                                   "single")]
                 + [(n, _D) for n in ("dt", "mu", "lam", "damping", "deform_damping", "gravity",
                                      "ground", "friction")]
                 + [(n, _P) for n in ("x", "v", "q", "fbuf", "ext", "dirs", "fext", "minv", "mass",
                                      "Bm", "vol", "boxes_min", "boxes_max", "weights", "thrust",
-                                     "el", "face_ptr", "faces", "vert_ptr", "verts")])
+                                     "gravity_share", "el", "face_ptr", "faces", "vert_ptr", "verts")])
 
 
 def _cpu_id() -> str:
@@ -52,7 +54,8 @@ def _cpu_id() -> str:
 
 
 def _library_path(cache_dir: Path) -> Path:
-    h = hashlib.sha256(SOURCE.read_bytes() + " ".join(FLAGS).encode() + _cpu_id().encode())
+    text = SOURCE.read_bytes() + b"".join(h.read_bytes() for h in HEADERS)
+    h = hashlib.sha256(text + " ".join(FLAGS).encode() + _cpu_id().encode())
     return cache_dir / f"kernels-{h.hexdigest()[:16]}.so"
 
 
@@ -109,11 +112,19 @@ def library():
         warnings.warn(f"sdexp: compiled FEM kernels unavailable ({detail.strip()[:200]}); "
                       "using the numba ones, about 3x slower", RuntimeWarning, stacklevel=2)
         return None
-    lib.corotated_forces_3d.restype = SIGNATURE._restype_
-    lib.corotated_forces_3d.argtypes = list(SIGNATURE._argtypes_)
+    for name in ("corotated_forces_3d", "corotated_forces_3d_f32"):   # float64 / float32 forces
+        getattr(lib, name).restype = SIGNATURE._restype_
+        getattr(lib, name).argtypes = list(SIGNATURE._argtypes_)
     lib.advance.restype = ctypes.c_int
     lib.advance.argtypes = [ctypes.POINTER(Step), ctypes.POINTER(ctypes.c_double)]
     lib.block_size.restype = ctypes.c_int
+    lib.forces_only.restype = ctypes.c_int
+    lib.forces_only.argtypes = [ctypes.POINTER(Step), ctypes.c_int64]
+    for name in ("fma_probe", "fma_probe_f32"):   # the benchmark's peak probe
+        getattr(lib, name).restype = ctypes.c_double
+        getattr(lib, name).argtypes = [ctypes.c_int64, ctypes.c_double]
+    lib.fma_probe_width.restype = ctypes.c_int
+    lib.fma_probe_width.argtypes = [ctypes.c_int]
     # once per process (library() is cached): the run's log says which kernels stepped it
     log.info(f"sdexp: FEM kernels: compiled C ({path})")
     return lib

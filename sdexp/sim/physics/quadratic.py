@@ -105,72 +105,77 @@ def boundary_subfaces(corner_faces: np.ndarray, elems: np.ndarray) -> np.ndarray
 # --------------------------------------------------------------------------------------------
 
 @nb.njit(inline="always")
-def _rotation(qw, qx, qy, qz):
-    return (1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
-            2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
-            2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
+def rotation(qw, qx, qy, qz, real):
+    """Row-major entries of the rotation matrix of a unit quaternion, in ``real`` arithmetic."""
+    one, two = real(1.0), real(2.0)
+    return (one - two * (qy * qy + qz * qz), two * (qx * qy - qw * qz), two * (qx * qz + qw * qy),
+            two * (qx * qy + qw * qz), one - two * (qx * qx + qz * qz), two * (qy * qz - qw * qx),
+            two * (qx * qz - qw * qy), two * (qy * qz + qw * qx), one - two * (qx * qx + qy * qy))
 
 
 @nb.njit(inline="always")
-def _polar(F, q, iterations):
+def _polar(F, q, iterations, real):
     """Warm-started quaternion polar iteration (fem.corotated_range_3d's) on F (3, 3), q (4,)
-    updated in place; returns R."""
+    updated in place; returns R. In ``real`` arithmetic, as F and q are."""
     qw, qx, qy, qz = q[0], q[1], q[2], q[3]
     for _ in range(iterations):
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation(qw, qx, qy, qz, real)
         wx = (r10 * F[2, 0] - r20 * F[1, 0]) + (r11 * F[2, 1] - r21 * F[1, 1]) + (r12 * F[2, 2] - r22 * F[1, 2])
         wy = (r20 * F[0, 0] - r00 * F[2, 0]) + (r21 * F[0, 1] - r01 * F[2, 1]) + (r22 * F[0, 2] - r02 * F[2, 2])
         wz = (r00 * F[1, 0] - r10 * F[0, 0]) + (r01 * F[1, 1] - r11 * F[0, 1]) + (r02 * F[1, 2] - r12 * F[0, 2])
-        den = 0.5 / (abs(r00 * F[0, 0] + r10 * F[1, 0] + r20 * F[2, 0] + r01 * F[0, 1] + r11 * F[1, 1]
-                         + r21 * F[2, 1] + r02 * F[0, 2] + r12 * F[1, 2] + r22 * F[2, 2]) + 1e-9)
+        den = real(0.5) / (abs(r00 * F[0, 0] + r10 * F[1, 0] + r20 * F[2, 0] + r01 * F[0, 1] + r11 * F[1, 1]
+                               + r21 * F[2, 1] + r02 * F[0, 2] + r12 * F[1, 2] + r22 * F[2, 2]) + real(1e-9))
         ax = wx * den; ay = wy * den; az = wz * den
         nw = qw - ax * qx - ay * qy - az * qz
         nx = qx + ax * qw + ay * qz - az * qy
         ny = qy - ax * qz + ay * qw + az * qx
         nz = qz + ax * qy - ay * qx + az * qw
-        inv = 1.0 / np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+        inv = real(1.0) / np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
         qw = nw * inv; qx = nx * inv; qy = ny * inv; qz = nz * inv
     q[0] = qw; q[1] = qx; q[2] = qy; q[3] = qz
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation(qw, qx, qy, qz, real)
     return np.array([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]])
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
-def p2_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1, per_point, iterations):
+def p2_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1, per_point, iterations, real):
     """Add the nodal forces of 10-node tets [e0, e1) into f (nv, 3). q (4 ne, 4): warm-start
     quaternions, row 4 e + k for quadrature point k (``per_point``), or row 4 e for the rotation
-    of the element's corner F.
-    Returns the number of elements with a quadrature point at det F <= 0."""
+    of the element's corner F. ``real``: the arithmetic's type and Bm's, vol's and q's (as
+    fem.corotated_range_3d). Returns the number of elements with a quadrature point at det F <= 0."""
     inverted = 0
-    Ds = np.empty((3, 3)); G = np.empty((4, 3)); d = np.zeros((10, 3)); h = np.empty((10, 3))
+    one, four = real(1.0), real(4.0)
+    mu = real(mu); lam = real(lam)
+    Ds = np.empty((3, 3), real); G = np.empty((4, 3), real); d = np.zeros((10, 3), real)
+    h = np.empty((10, 3), real); eye = np.eye(3, dtype=real)
     for e in range(e0, e1):
         b = Bm[e]
         for a in range(10):
             for c in range(3):
                 d[a, c] = x[elems[e, a], c] - x[elems[e, 0], c]
-        wV = -0.25 * vol[e]
+        wV = -real(0.25) * vol[e]
         h[:] = 0.0
-        R = np.eye(3)
+        R = eye
         if not per_point:
             for c in range(3):
                 for j in range(3):
                     Ds[c, j] = d[j + 1, c]
-            R = _polar(Ds @ b, q[4 * e], iterations)
+            R = _polar(Ds @ b, q[4 * e], iterations, real)
         bad = False
         for k in range(4):
-            L0, L1, L2, L3 = QUAD_3D[k, 0], QUAD_3D[k, 1], QUAD_3D[k, 2], QUAD_3D[k, 3]
+            L0, L1, L2, L3 = real(QUAD_3D[k, 0]), real(QUAD_3D[k, 1]), real(QUAD_3D[k, 2]), real(QUAD_3D[k, 3])
             for c in range(3):
-                y0 = 4.0 * (L1 * d[4, c] + L2 * d[6, c] + L3 * d[7, c])
-                Ds[c, 0] = (4.0 * L1 - 1.0) * d[1, c] + 4.0 * (L0 * d[4, c] + L2 * d[5, c] + L3 * d[8, c]) - y0
-                Ds[c, 1] = (4.0 * L2 - 1.0) * d[2, c] + 4.0 * (L0 * d[6, c] + L1 * d[5, c] + L3 * d[9, c]) - y0
-                Ds[c, 2] = (4.0 * L3 - 1.0) * d[3, c] + 4.0 * (L0 * d[7, c] + L1 * d[8, c] + L2 * d[9, c]) - y0
+                y0 = four * (L1 * d[4, c] + L2 * d[6, c] + L3 * d[7, c])
+                Ds[c, 0] = (four * L1 - one) * d[1, c] + four * (L0 * d[4, c] + L2 * d[5, c] + L3 * d[8, c]) - y0
+                Ds[c, 1] = (four * L2 - one) * d[2, c] + four * (L0 * d[6, c] + L1 * d[5, c] + L3 * d[9, c]) - y0
+                Ds[c, 2] = (four * L3 - one) * d[3, c] + four * (L0 * d[7, c] + L1 * d[8, c] + L2 * d[9, c]) - y0
             F = Ds @ b
             bad |= np.linalg.det(F) <= 0.0
             if per_point:
-                R = _polar(F, q[4 * e + k], iterations)
+                R = _polar(F, q[4 * e + k], iterations, real)
             S = R.T @ F
-            eps = 0.5 * (S + S.T) - np.eye(3)
-            T = 2.0 * mu * eps + lam * np.trace(eps) * np.eye(3)
+            eps = real(0.5) * (S + S.T) - eye
+            T = real(2.0) * mu * eps + lam * (eps[0, 0] + eps[1, 1] + eps[2, 2]) * eye   # np.trace would be float64
             P = wV * (R @ T)
             Gt = P @ b.T                                   # columns: g_1, g_2, g_3
             for c in range(3):
@@ -179,11 +184,11 @@ def p2_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1, per_point, iterations)
             L = (L0, L1, L2, L3)
             for j in range(4):
                 for c in range(3):
-                    h[j, c] += (4.0 * L[j] - 1.0) * G[j, c]
+                    h[j, c] += (four * L[j] - one) * G[j, c]
             for m in range(6):
                 i, j = EDGES_3D[m, 0], EDGES_3D[m, 1]
                 for c in range(3):
-                    h[4 + m, c] += 4.0 * (L[i] * G[j, c] + L[j] * G[i, c])
+                    h[4 + m, c] += four * (L[i] * G[j, c] + L[j] * G[i, c])
         inverted += 1 if bad else 0
         for a in range(10):
             for c in range(3):
@@ -192,37 +197,40 @@ def p2_range_3d(x, elems, Bm, vol, mu, lam, q, f, e0, e1, per_point, iterations)
 
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
-def p2_range_2d(x, elems, Bm, vol, mu, lam, f, e0, e1):
+def p2_range_2d(x, elems, Bm, vol, mu, lam, f, e0, e1, real):
     """6-node triangles [e0, e1) into f (nv, 2), plane strain, the exact 2D polar rotation at
-    every quadrature point. Returns the number of elements with a point at det F <= 0."""
+    every quadrature point. Returns the number of elements with a point at det F <= 0.
+    ``real``: as p2_range_3d's."""
     inverted = 0
-    d = np.zeros((6, 2)); h = np.empty((6, 2)); G = np.empty((3, 2))
+    half, one, two, four = real(0.5), real(1.0), real(2.0), real(4.0)
+    mu = real(mu); lam = real(lam)
+    d = np.zeros((6, 2), real); h = np.empty((6, 2), real); G = np.empty((3, 2), real)
     for e in range(e0, e1):
         b00 = Bm[e, 0, 0]; b01 = Bm[e, 0, 1]; b10 = Bm[e, 1, 0]; b11 = Bm[e, 1, 1]
         for a in range(6):
             for c in range(2):
                 d[a, c] = x[elems[e, a], c] - x[elems[e, 0], c]
-        wV = -vol[e] / 3.0
+        wV = -vol[e] / real(3.0)
         h[:] = 0.0
         bad = False
         for k in range(3):
-            L0, L1, L2 = QUAD_2D[k, 0], QUAD_2D[k, 1], QUAD_2D[k, 2]
-            y0x = 4.0 * (L1 * d[3, 0] + L2 * d[5, 0]); y0y = 4.0 * (L1 * d[3, 1] + L2 * d[5, 1])
-            d1x = (4.0 * L1 - 1.0) * d[1, 0] + 4.0 * (L0 * d[3, 0] + L2 * d[4, 0]) - y0x
-            d1y = (4.0 * L1 - 1.0) * d[1, 1] + 4.0 * (L0 * d[3, 1] + L2 * d[4, 1]) - y0y
-            d2x = (4.0 * L2 - 1.0) * d[2, 0] + 4.0 * (L0 * d[5, 0] + L1 * d[4, 0]) - y0x
-            d2y = (4.0 * L2 - 1.0) * d[2, 1] + 4.0 * (L0 * d[5, 1] + L1 * d[4, 1]) - y0y
+            L0, L1, L2 = real(QUAD_2D[k, 0]), real(QUAD_2D[k, 1]), real(QUAD_2D[k, 2])
+            y0x = four * (L1 * d[3, 0] + L2 * d[5, 0]); y0y = four * (L1 * d[3, 1] + L2 * d[5, 1])
+            d1x = (four * L1 - one) * d[1, 0] + four * (L0 * d[3, 0] + L2 * d[4, 0]) - y0x
+            d1y = (four * L1 - one) * d[1, 1] + four * (L0 * d[3, 1] + L2 * d[4, 1]) - y0y
+            d2x = (four * L2 - one) * d[2, 0] + four * (L0 * d[5, 0] + L1 * d[4, 0]) - y0x
+            d2y = (four * L2 - one) * d[2, 1] + four * (L0 * d[5, 1] + L1 * d[4, 1]) - y0y
             f00 = d1x * b00 + d2x * b10; f01 = d1x * b01 + d2x * b11
             f10 = d1y * b00 + d2y * b10; f11 = d1y * b01 + d2y * b11
             bad |= f00 * f11 - f01 * f10 <= 0.0
             cs = f00 + f11; sn = f10 - f01
-            inv_n = 1.0 / np.sqrt(cs * cs + sn * sn + 1e-300)
+            inv_n = one / np.sqrt(cs * cs + sn * sn + real(1e-30))
             cs *= inv_n; sn *= inv_n
             s00 = cs * f00 + sn * f10; s11 = -sn * f01 + cs * f11
-            s01 = 0.5 * ((cs * f01 + sn * f11) + (-sn * f00 + cs * f10))
-            e00 = s00 - 1.0; e11 = s11 - 1.0
+            s01 = half * ((cs * f01 + sn * f11) + (-sn * f00 + cs * f10))
+            e00 = s00 - one; e11 = s11 - one
             tr = lam * (e00 + e11)
-            t00 = 2.0 * mu * e00 + tr; t11 = 2.0 * mu * e11 + tr; t01 = 2.0 * mu * s01
+            t00 = two * mu * e00 + tr; t11 = two * mu * e11 + tr; t01 = two * mu * s01
             p00 = wV * (cs * t00 - sn * t01); p01 = wV * (cs * t01 - sn * t11)
             p10 = wV * (sn * t00 + cs * t01); p11 = wV * (sn * t01 + cs * t11)
             G[1, 0] = p00 * b00 + p01 * b01; G[1, 1] = p10 * b00 + p11 * b01
@@ -231,11 +239,11 @@ def p2_range_2d(x, elems, Bm, vol, mu, lam, f, e0, e1):
             L = (L0, L1, L2)
             for j in range(3):
                 for c in range(2):
-                    h[j, c] += (4.0 * L[j] - 1.0) * G[j, c]
+                    h[j, c] += (four * L[j] - one) * G[j, c]
             for m in range(3):
                 i, j = EDGES_2D[m, 0], EDGES_2D[m, 1]
                 for c in range(2):
-                    h[3 + m, c] += 4.0 * (L[i] * G[j, c] + L[j] * G[i, c])
+                    h[3 + m, c] += four * (L[i] * G[j, c] + L[j] * G[i, c])
         inverted += 1 if bad else 0
         for a in range(6):
             for c in range(2):
