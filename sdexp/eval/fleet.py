@@ -17,7 +17,7 @@ the four tasks with the paper's noise and 30 ms delay:
 Jobs run side by side (``workers`` processes, one core each); each writes ``jobs/<drone>_seed<k>.json``
 when it ends, so an interrupted fleet resumes with the jobs it has (and the cached data and nets
 of the rest). A job whose data or training fails is a recorded row with its reason; the fleet
-goes on. Per drone, once, the physics that decide whether it can fly at all (``physics_of``):
+goes on (a resumed run keeps that row: delete its job file to try the drone again). Per drone, once, the physics that decide whether it can fly at all (``physics_of``):
 thrust-to-weight, the largest rotor's share of Tmax at hover, the fold that hover thrust holds
 open loop, the rank of the rigid wrench, and how well its nets predict (beside the flights).
 
