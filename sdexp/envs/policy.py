@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sdexp.control.lqr import LqrFailure
 from sdexp.sensing import State
 
 
@@ -72,7 +73,12 @@ class OursPolicy:
         c = self._controllers[index]
         obs = np.asarray(obs, dtype=float)
         c.observed.x = obs[self.n:]
-        u = c.act(c.steps * self.dt, _state(obs[: self.n], self.slices))
+        try:
+            u = c.act(c.steps * self.dt, _state(obs[: self.n], self.slices))
+        except LqrFailure:
+            # no stabilising gain on the learned model at this state: as fly() records it, the
+            # episode ends with a controller failure (the env terminates on a non-finite action)
+            u = np.full(len(c.u), np.nan)
         c.steps += 1
         return np.clip(u, -self.max_thrust, self.max_thrust).astype(np.float32)
 

@@ -157,6 +157,25 @@ def test_ours_flies_in_the_env_as_fly_flies_it(cache_dir):
     assert np.array_equal(first[0], policy(obs))
 
 
+def test_a_riccati_failure_of_ours_ends_the_episode_as_a_controller_failure(cache_dir, monkeypatch):
+    """As in fly(): no stabilising gain is a recorded failure, not an exception out of predict()."""
+    from sdexp.control.lqr import LqrFailure
+    from sdexp.control.relinearizing import RelinearizingLQR
+    from sdexp.envs.policy import OursPolicy
+
+    def no_gain(self, t, state):
+        raise LqrFailure("the Riccati solution does not solve the equation (ill-posed)")
+    monkeypatch.setattr(RelinearizingLQR, "act", no_gain)
+    env = gym.make("sdexp/Rod-Hover-v0", overrides=[*SHRUNK[1:], f"cache_dir={cache_dir}"], seconds=0.3)
+    policy = OursPolicy(env, progress=False)
+    obs, _ = env.reset(seed=0)
+    policy.reset()
+    action = policy(obs)
+    assert np.isnan(action).all()
+    _, _, terminated, _, info = env.step(action)
+    assert terminated and info["failure"] == "controller: non-finite command"
+
+
 def test_the_benchmark_reports_steps_per_second_on_one_and_two_cores(cache_dir):
     from sdexp.envs.bench import main
     (row,) = main(["--drones", "rod", "--steps", "20", "--override", f"cache_dir={cache_dir}"])
