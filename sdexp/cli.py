@@ -187,7 +187,7 @@ def main() -> None:
     """The ``sdexp`` command."""
     global _started
     args = sys.argv[1:]
-    previous = os.environ.get("HYDRA_FULL_ERROR")
+    previous = {k: os.environ.get(k) for k in ("HYDRA_FULL_ERROR", PARENT_ENV)}
     os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing and exiting 1
     os.environ[PARENT_ENV] = str(os.getpid())
     _started = False
@@ -211,11 +211,12 @@ def main() -> None:
             raise
         fail(f"cannot create the run's output folder: {err} (choose a writable one with "
              f"hydra.run.dir=<folder>, or hydra.sweep.dir=<folder> with -m)")
-    finally:
-        if previous is None:
-            os.environ.pop("HYDRA_FULL_ERROR", None)
-        else:
-            os.environ["HYDRA_FULL_ERROR"] = previous
+    finally:   # main() called in-process (tests, notebooks) leaves the environment as it was
+        for key, value in previous.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ calling script must guard its top level with ``if __name__ == "__main__":``.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import queue
 from typing import Callable, Sequence
@@ -17,12 +18,15 @@ ONE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NU
                   "MKL_NUM_THREADS": "1"}
 
 _REPORT = None
+log = logging.getLogger(__name__)
 
 
 def _init(q, parent: int) -> None:
     global _REPORT
     _REPORT = q.put
+    import faulthandler
     import threading
+    faulthandler.enable()   # a crash in compiled code prints where it happened, not only "terminated abruptly"
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
 
 
@@ -40,12 +44,41 @@ def _call(fn, args):
     return fn(*args, report=_REPORT)
 
 
-def run_spawned(fn: Callable, tasks: Sequence[tuple], workers: int, progress: Callable | None = None) -> list:
+def run_spawned(fn: Callable, tasks: Sequence[tuple], workers: int, progress: Callable | None = None,
+                retries: int = 1) -> list:
     """[fn(*task, report=...) for task in tasks] on ``workers`` spawned processes; ``report(n)``
     in a child calls ``progress(n)`` here. A child's error is raised here; the tasks not yet
-    started are cancelled (a task that already wrote its own output keeps it)."""
+    started are cancelled (a task that already wrote its own output keeps it).
+
+    A worker that dies without an error of its own (killed by a signal: the kernel's OOM killer,
+    an operator, a crash) breaks the whole pool: the tasks it left unfinished run again on a fresh
+    pool, ``retries`` times, with a warning that names how the worker ended (the tasks are
+    deterministic and write their outputs atomically, so a rerun changes nothing)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    results: dict[int, object] = {}
+    todo = list(range(len(tasks)))
+    for attempt in range(retries + 1):
+        try:
+            _run_pool(fn, tasks, todo, workers, progress, results)
+            break
+        except _Broken as broken:
+            todo = [i for i in todo if i not in results]
+            if attempt == retries:
+                raise BrokenProcessPool(f"{broken}; {len(todo)} of {len(tasks)} tasks unfinished") from None
+            log.warning(f"sdexp: {broken}; running its {len(todo)} unfinished tasks again")
+    return [results[i] for i in range(len(tasks))]
+
+
+class _Broken(Exception):
+    """A worker of the pool ended abruptly; the message says how."""
+
+
+def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
     import multiprocessing as mp
+    import signal
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
@@ -53,18 +86,32 @@ def run_spawned(fn: Callable, tasks: Sequence[tuple], workers: int, progress: Ca
     saved = {k: os.environ.get(k) for k in ONE_THREAD_ENV}
     os.environ.update(ONE_THREAD_ENV)
     try:
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q, os.getpid())) as pool:
-            futures = [pool.submit(_call, fn, task) for task in tasks]  # children start here
+        with ProcessPoolExecutor(min(workers, len(todo)) or 1, mp_context=ctx, initializer=_init,
+                                 initargs=(q, os.getpid())) as pool:
+            futures = {i: pool.submit(_call, fn, tasks[i]) for i in todo}  # children start here
+            processes = list(getattr(pool, "_processes", {}).values())   # for their exit codes
             _restore(saved)
             try:
-                while not all(f.done() for f in futures):
+                while not all(f.done() for f in futures.values()):
                     try:
                         drain(q.get(timeout=0.2))
                     except queue.Empty:
                         pass
-                results = [f.result() for f in futures]  # re-raises a child's error
+                for i, f in futures.items():
+                    if not f.cancelled() and f.exception() is None:
+                        results[i] = f.result()
+                for f in futures.values():
+                    f.result()   # re-raises a child's error
+            except BrokenProcessPool:
+                for p in processes:
+                    p.join(timeout=5)
+                codes = [p.exitcode for p in processes if p.exitcode not in (None, 0)]
+                # the pool ends the other workers with SIGTERM once one has died: name the first
+                codes = [c for c in codes if c != -signal.SIGTERM] or codes
+                how = ", ".join(f"signal {signal.Signals(-c).name}" if c < 0 else f"exit code {c}" for c in codes)
+                raise _Broken(f"a worker process ended abruptly ({how or 'cause unknown'})") from None
             except BaseException:
-                for f in futures:
+                for f in futures.values():
                     f.cancel()
                 raise
     finally:
@@ -73,7 +120,7 @@ def run_spawned(fn: Callable, tasks: Sequence[tuple], workers: int, progress: Ca
         try:
             drain(q.get_nowait())
         except queue.Empty:
-            return results
+            return
 
 
 def _restore(saved: dict) -> None:

@@ -39,3 +39,26 @@ def test_workers_exit_when_their_parent_is_killed(tmp_path):
     else:
         os.kill(child, signal.SIGKILL)
         pytest.fail("the worker outlived its killed parent by 10 s")
+
+
+def dies_once(marker, k, report):
+    """A task whose worker is killed the first time (as by the OOM killer), then succeeds."""
+    from pathlib import Path
+    if k == 1 and not Path(marker).exists():
+        Path(marker).touch()
+        os.kill(os.getpid(), signal.SIGKILL)
+    report(1)
+    return k * k
+
+
+def test_a_killed_worker_is_named_and_its_unfinished_tasks_run_again(tmp_path, caplog):
+    from concurrent.futures.process import BrokenProcessPool
+
+    from sdexp.parallel import run_spawned
+    tasks = [(str(tmp_path / "killed"), k) for k in range(4)]
+    seen = []
+    assert run_spawned(dies_once, tasks, workers=2, progress=seen.append) == [0, 1, 4, 9]
+    assert "ended abruptly (signal SIGKILL)" in caplog.text and sum(seen) >= 4
+    (tmp_path / "killed").unlink()
+    with pytest.raises(BrokenProcessPool, match="SIGKILL"):
+        run_spawned(dies_once, tasks, workers=2, retries=0)
