@@ -38,10 +38,16 @@ kp (p_goal - p), is shortened to at most this length. A waypoint at the goal (kp
 hover and follows a moving goal closely, but a goal a body length away then asks the LQR for
 a jump it answers with a tilt past recovery (measured on the rod: 8 m trip, tilt 90 deg at
 1.3 s); with the offset bounded the drone chases a point that stays near it.
+
+A model learned with a command delay (``model.command_delay`` d > 0, our extension): the thrust
+chosen now acts d steps from now, so the controller works on the state the learned model
+predicts for then, from the measured state and the d commands already sent (a Smith predictor);
+the rotors are idle before the first command.
 """
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
 
@@ -87,6 +93,7 @@ class RelinearizingLQR:
         self.u = self.u0.copy()
         self.u_oper = self.u.copy()
         self.u_ff = None
+        self.sent = deque([np.zeros(self.dyn.m)] * getattr(self.dyn, "delay", 0))   # sent, not yet acting (oldest first)
         if not self.relinearize:
             if self.x_op is None or self.u_op is None:
                 raise ValueError("relinearize=False needs an operating point (x_op, u_op)")
@@ -105,7 +112,7 @@ class RelinearizingLQR:
         return u
 
     def act(self, t: float, state: State) -> np.ndarray:
-        x = state.x
+        x = self.dyn.predict(state.x, self.sent) if self.sent else state.x
         if self.k % self.n == 0:
             if self.relinearize:
                 t0 = time.perf_counter()
@@ -131,4 +138,7 @@ class RelinearizingLQR:
                     self.x_wp[self.dyn.slices[key]] = goal[self.dyn.slices[key]]
         self.k += 1
         self.u = np.clip(self.u_oper - self.K @ self._diff(x, self.x_wp), -self.max_thrust, self.max_thrust)
+        if self.sent:
+            self.sent.append(self.u.copy())
+            self.sent.popleft()
         return self.u

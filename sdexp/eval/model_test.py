@@ -68,17 +68,17 @@ def channel_names(sizes: dict) -> dict[str, list[str]]:
 # ------------------------------------------------------------------------------ (a) acceleration
 
 @torch.no_grad()
-def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon: int = 1):
+def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon: int = 1, delay: int = 0):
     """Per-channel R^2 of the reconstructed acceleration on the given transitions (those whose
     ``horizon``-frame target exists, ``alpha`` apart); returns (table, {group: (true accel,
     predicted accel)}, the dataset rows they are of, sorted)."""
     names = channel_names(state_sizes(data))
     rows, series = [], {}
-    used = design_rows(data, val_idx, horizon)
+    used = design_rows(data, val_idx, horizon, delay)
     for spec, group in zip(DECOMPOSED, GROUPS):
         if spec.name not in trained.nets:
             continue
-        X, Y, base = design(data, spec, val_idx, horizon)
+        X, Y, base = design(data, spec, val_idx, horizon, delay)
         net = trained.nets[spec.name]
         pred = np.concatenate([net(torch.from_numpy(X[i:i + 65536])).numpy() for i in range(0, len(X), 65536)])
         cur = X[:, base]
@@ -348,7 +348,7 @@ def run(run: Run) -> dict:
 
     # (a) acceleration on held-out episodes
     _, val_idx = data.split(float(cfg.data.validation_fraction), int(cfg.seed))
-    table, series, rows = acceleration_test(data, trained, val_idx, alpha, horizon)
+    table, series, rows = acceleration_test(data, trained, val_idx, alpha, horizon, dyn.delay)
     run.table(table, "acceleration_r2")
     acceleration_plot(data, rows, series, table, dt, float(p.plot_seconds),
                       out_dir / "acceleration.png")
@@ -380,6 +380,8 @@ def run(run: Run) -> dict:
         metrics["flight_source"] = f"simulated, seed {used_seed}"
     T = len(U)
     t = dt * np.arange(T + 1)
+    if dyn.delay:   # the model steps on the commands acting (the flight starts with idle rotors)
+        U = np.concatenate([np.zeros((min(dyn.delay, T), U.shape[1])), U[:T - dyn.delay]])
     metrics["flight_seconds"] = float(T * dt)
     X_lin, lin_times = rollout(dyn, X_true[0], U, every, linear=True)
     X_nl, _ = rollout(dyn, X_true[0], U, every, linear=False)

@@ -102,11 +102,14 @@ class _one_thread:
 class LearnedDynamics:
     def __init__(self, nets: Mapping[str, ResidualMLP], n_s: int, n_e: int, dim: int, m: int,
                  alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64,
-                 dt: float | None = None):
+                 dt: float | None = None, delay: int = 0):
         """``alpha``: the time between a network's input and its target (model.horizon frames);
-        ``dt``: one control interval (default alpha), the step of a simulated rollout."""
+        ``dt``: one control interval (default alpha), the step of a simulated rollout; ``delay``:
+        control steps from a command to the thrust it sets (model.command_delay): u in f(x, u) is
+        the command acting now, the one sent ``delay`` steps ago."""
         self.n_s, self.n_e, self.dim, self.m, self.alpha = int(n_s), int(n_e), int(dim), int(m), float(alpha)
         self.dt = self.alpha if dt is None else float(dt)
+        self.delay = int(delay)
         sizes = {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim}
         self.slices: dict[str, slice] = {}
         o = 0
@@ -135,10 +138,11 @@ class LearnedDynamics:
         self._jac = [_MlpJacobian(net) for _, net, _, _ in self.parts]
 
     @classmethod
-    def from_trained(cls, trained, data, dt: float, horizon: int = 1) -> "LearnedDynamics":
+    def from_trained(cls, trained, data, dt: float, horizon: int = 1, delay: int = 0) -> "LearnedDynamics":
         """From a :class:`~sdexp.model.training.TrainedNets` and the dataset it was trained on;
-        ``dt`` the control interval, ``horizon`` the frames between a net's input and target."""
-        return cls(trained.nets, **state_sizes(data), alpha=dt * horizon, specs=trained.specs, dt=dt)
+        ``dt`` the control interval, ``horizon`` the frames between a net's input and target,
+        ``delay`` the command delay they were trained with."""
+        return cls(trained.nets, **state_sizes(data), alpha=dt * horizon, specs=trained.specs, dt=dt, delay=delay)
 
     # ------------------------------------------------------------------------------ torch
     def net_outputs(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -163,6 +167,14 @@ class LearnedDynamics:
         """Eq. 4: x_dot for x (..., n) and u (..., m)."""
         with torch.no_grad(), _one_thread():
             return self.f_torch(self._as(x), self._as(u)).numpy()
+
+    def predict(self, x, commands) -> np.ndarray:
+        """The state after one explicit step (``dt``) per command of ``commands`` (oldest first),
+        from x: where the commands already sent but not yet acting take the body."""
+        x = np.asarray(x, dtype=np.float64)
+        for u in commands:
+            x = x + self.dt * self.f(x, u)
+        return x
 
     def jacobians(self, x, u) -> tuple[np.ndarray, np.ndarray]:
         """(A, B) = (df/dx, df/du) at one (x, u), by autograd, in the block form of Eq. 6."""

@@ -15,5 +15,6 @@ def identify(cfg, progress: bool = True) -> tuple[Dataset, TrainedNets, LearnedD
     data = load_dataset(cfg)
     trained = train_models(data, cfg.model, int(cfg.seed), cfg.cache_dir, float(cfg.data.validation_fraction),
                            DECOMPOSED, progress)
-    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon))
+    dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon),
+                                       int(cfg.model.command_delay))
     return data, trained, dyn

@@ -77,37 +77,51 @@ def _arrays(data) -> dict[str, np.ndarray]:
     return data.arrays if hasattr(data, "arrays") else data
 
 
-def horizon_rows(data, horizon: int) -> np.ndarray:
+def horizon_rows(data, horizon: int, delay: int = 0) -> np.ndarray:
     """Rows i whose target ``horizon`` frames ahead exists: rows i .. i + horizon - 1 are
-    consecutive frames of one episode under one command (a constant-thrust hold)."""
+    consecutive frames of one episode under one acting command (a constant-thrust hold); with a
+    command ``delay``, row i also needs the command sent ``delay`` frames before it, in its episode."""
     a = _arrays(data)
     n = len(a["u"])
     i = np.arange(max(n - horizon + 1, 0))
-    if horizon == 1:
+    if horizon == 1 and delay == 0:
         return i
-    ep, u = np.asarray(a["episode"]), np.asarray(a["u"])
+    ep = np.asarray(a["episode"])
+    u = acting_commands(a, delay)
     ok = np.ones(len(i), bool)
-    for j in range(1, horizon):   # an episode's rows are consecutive frames (generate.py)
+    if delay:
+        ok &= (i >= delay) & (ep[np.maximum(i - delay, 0)] == ep[i])   # an episode's rows are consecutive
+    for j in range(1, horizon):   # frames (generate.py)
         ok &= (ep[i + j] == ep[i]) & np.all(u[i + j] == u[i], axis=1)
     return i[ok]
 
 
-def design_rows(data, idx: np.ndarray | None = None, horizon: int = 1) -> np.ndarray:
-    """The rows (of ``idx``, or all; sorted) that ``design`` keeps: those with a ``horizon``-frame target."""
-    rows = horizon_rows(_arrays(data), horizon)
+def acting_commands(data, delay: int) -> np.ndarray:
+    """The command acting at each row: the one sent ``delay`` frames earlier (``model.command_delay``;
+    rows without one, at an episode's start, get row 0's and are dropped by ``horizon_rows``)."""
+    u = np.asarray(_arrays(data)["u"])
+    return u if delay == 0 else np.concatenate([np.repeat(u[:1], delay, axis=0), u[:-delay]])[:len(u)]
+
+
+def design_rows(data, idx: np.ndarray | None = None, horizon: int = 1, delay: int = 0) -> np.ndarray:
+    """The rows (of ``idx``, or all; sorted) that ``design`` keeps: those with a ``horizon``-frame
+    target and, with a command ``delay``, a command that acts on them."""
+    rows = horizon_rows(_arrays(data), horizon, delay)
     return rows if idx is None else np.intersect1d(rows, idx)
 
 
-def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1
+def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1, delay: int = 0
            ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(inputs (N, n_in), targets (N, n_out), base) for one network; base[j] is the input column
     holding the current value of output j. ``horizon`` k > 1: the target is the velocity k
-    frames ahead under the same command (``model.horizon``), rows without one are dropped."""
+    frames ahead under the same command (``model.horizon``), rows without one are dropped.
+    ``delay``: the input u is the command sent that many frames earlier (``model.command_delay``)."""
     a = _arrays(data)
     missing = [k for k in (*spec.inputs, spec.target) if k not in a]
     if missing:
         raise UserError(f"the dataset has no {missing} arrays, needed by network {spec.name!r}")
-    cols = [np.asarray(a[k], dtype=np.float32).reshape(len(a[k]), -1) for k in spec.inputs]
+    cols = [np.asarray(acting_commands(a, delay) if k == "u" else a[k], dtype=np.float32).reshape(len(a[k]), -1)
+            for k in spec.inputs]
     X = np.concatenate(cols, axis=1)
     Y = np.asarray(a[spec.target], dtype=np.float32).reshape(len(X), -1)
     offset = 0
@@ -118,7 +132,7 @@ def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1
     if spec.current not in spec.inputs or cols[spec.inputs.index(spec.current)].shape[1] != Y.shape[1]:
         raise UserError(f"network {spec.name!r}: {spec.current} must be an input as wide as {spec.target}")
     base = list(range(offset, offset + Y.shape[1]))
-    rows = design_rows(a, idx, horizon)
+    rows = design_rows(a, idx, horizon, delay)
     return X[rows], Y[rows + horizon - 1], base
 
 
@@ -265,7 +279,7 @@ def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Se
     """``model_cfg``: a sdexp.config.ModelConfig."""
     model = {**config_key(model_cfg), "linear": sorted(model_cfg.linear)}   # which nets, in any order
     keys = {k for s in specs for k in (*s.inputs, s.target)}
-    if int(model_cfg.horizon) > 1:
+    if int(model_cfg.horizon) > 1 or int(model_cfg.command_delay) > 0:
         keys |= {"u"}            # the rows design() keeps depend on it
     payload = {
         "data": dataset_key(data, sorted(keys)),
@@ -331,13 +345,13 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
 def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress) -> TrainedNets:
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
-    horizon = int(model_cfg.horizon)
+    horizon, delay = int(model_cfg.horizon), int(model_cfg.command_delay)
     for i, spec in enumerate(specs):
-        X_tr, Y_tr, base = design(data, spec, train_idx, horizon)
+        X_tr, Y_tr, base = design(data, spec, train_idx, horizon, delay)
         if Y_tr.shape[1] == 0:
             skipped.append(spec.name)
             continue
-        X_va, Y_va, _ = design(data, spec, val_idx, horizon)
+        X_va, Y_va, _ = design(data, spec, val_idx, horizon, delay)
         ok_tr = np.isfinite(X_tr).all(1) & np.isfinite(Y_tr).all(1)
         ok_va = np.isfinite(X_va).all(1) & np.isfinite(Y_va).all(1)
         if not (ok_tr.all() and ok_va.all()):

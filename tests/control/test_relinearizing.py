@@ -316,3 +316,49 @@ def test_waypoint_max_bounds_the_position_offset_of_the_waypoint_and_nothing_els
         assert ctl.x_wp[0] == pytest.approx(0.2)   # the bend's waypoint: kp x its error, unbounded
     with pytest.raises(ValueError, match="waypoint_max"):
         RelinearizingLQR(Linear(), np.ones(8), 1.0, 1.0, 0.0, 1, 10.0, waypoint_max=0.0)
+
+
+class LaggedCopter(PlanarCopter):
+    """The copter whose thrust follows the command ``delay`` steps late, as a model that knows it
+    (LearnedDynamics with model.command_delay) or (delay 0) one that does not."""
+
+    def __init__(self, delay, **kw):
+        super().__init__(**kw)
+        self.delay = delay
+
+    def predict(self, x, commands):
+        for u in commands:
+            x = x + DT * self.f(x, u)
+        return x
+
+
+def fly_lagged(ctl, dyn, lag, x0, seconds):
+    """Closed loop through the true copter, whose rotors act ``lag`` steps after the command."""
+    from collections import deque
+    sent = deque([np.zeros(2)] * lag)
+    x, X = np.array(x0, float), []
+    for k in range(int(round(seconds / DT))):
+        sent.append(ctl.act(k * DT, state_of(dyn, x)).copy())
+        x = x + DT * dyn.f(x, sent.popleft())
+        X.append(x.copy())
+    return np.array(X)
+
+
+def test_a_model_with_the_command_delay_predicts_the_state_its_command_will_meet():
+    """With a lag of d steps the first relinearisation happens at the state d idle-rotor steps
+    ahead (falling at g d dt), and stiff gains that shake the copter apart when the lag is ignored
+    hold it when the controller predicts across it."""
+    lag, target = 8, np.array([0.3, 0.0])
+    known = LaggedCopter(lag, nonlinear=True)
+    ctl = RelinearizingLQR(known, weights(known), r=0.05, kp=1.0, kd=0.0, n=1, max_thrust=TMAX)
+    ctl.reset(Task(start=np.zeros(2), target=target, seconds=4.0, n_s=0))
+    ctl.act(0.0, state_of(known, np.zeros(known.n)))
+    x_lin = known.calls[0][0]
+    assert x_lin[known.slices["p_dot"]][1] == pytest.approx(-G * lag * DT)
+    errors = {}
+    for name, model in (("predicted", known), ("ignored", LaggedCopter(0, nonlinear=True))):
+        ctl = RelinearizingLQR(model, weights(model), r=0.05, kp=1.0, kd=0.0, n=1, max_thrust=TMAX)
+        ctl.reset(Task(start=np.zeros(2), target=target, seconds=4.0, n_s=0))
+        X = fly_lagged(ctl, model, lag, np.zeros(model.n), 4.0)
+        errors[name] = np.abs(X[-100:, model.slices["p"]] - target).max()
+    assert errors["predicted"] < 0.05 and errors["ignored"] > 1.0, errors

@@ -231,11 +231,36 @@ def test_horizon_targets_stay_inside_one_hold_of_one_episode():
     assert X2[:, 0].astype(int).tolist() == [1, 2]
 
 
+def test_a_command_delay_pairs_each_row_with_the_command_sent_that_many_frames_before():
+    """model.command_delay = d: row i's input u is row i - d's command (the thrust acting on it);
+    the first d rows of every episode have none and are dropped; with a horizon as well, the
+    k frames share the acting command."""
+    n = 12
+    a = {"s": np.arange(n, dtype=np.float32)[:, None], "s_dot": np.zeros((n, 1), np.float32),
+         "u": np.arange(n, dtype=np.float32)[:, None] * 10,
+         "s_dot_next": 100 + np.arange(n, dtype=np.float32)[:, None],
+         "episode": np.array([0] * 7 + [1] * 5, np.int32)}
+    d = DECOMPOSED[0]
+    u_col = d.inputs.index("u")
+    X, Y, _ = design(a, d, delay=2)
+    rows = X[:, 0].astype(int)
+    assert rows.tolist() == [2, 3, 4, 5, 6, 9, 10, 11]
+    np.testing.assert_array_equal(X[:, u_col], (rows - 2) * 10)          # the command two frames back
+    np.testing.assert_array_equal(Y[:, 0], 100 + rows)                  # the target is this row's
+    a["u"] = np.repeat(np.array([[0.0], [1.0], [2.0]], np.float32), [5, 4, 3], axis=0)
+    X, _, _ = design(a, d, horizon=2, delay=1)
+    # acting commands (one frame late): rows 1-5 u 0, 6-9 u 1 (episode 1 starts at 7), 10-11 u 2
+    assert X[:, 0].astype(int).tolist() == [1, 2, 3, 4, 8, 10]
+
+
 def test_the_model_key_is_the_configs_key_fields():
     """Every field that trains other nets is in the key; the thread count is not."""
     data = synthetic_dataset(n=400, episode_len=100)
     k1 = training.models_key(data, model_cfg(), 0, 0.2, DECOMPOSED)
     assert k1 != training.models_key(data, model_cfg(horizon=3), 0, 0.2, DECOMPOSED)
+    assert k1 != training.models_key(data, model_cfg(command_delay=3), 0, 0.2, DECOMPOSED)
+    from sdexp.cache import config_key   # at its default the delay is not in the key: earlier nets keep theirs
+    assert "command_delay" not in config_key(model_cfg()) and "command_delay" in config_key(model_cfg(command_delay=3))
     assert k1 == training.models_key(data, model_cfg(threads=2), 0, 0.2, DECOMPOSED)
 
 
