@@ -52,12 +52,16 @@ def config_key(node: Any) -> Any:
     if dataclasses.is_dataclass(node) and not isinstance(node, type):
         return {f.name: config_key(getattr(node, f.name)) for f in dataclasses.fields(node)
                 if f.metadata.get("key", True) is True
-                or (f.metadata.get("key") == KEY_UNLESS_DEFAULT and getattr(node, f.name) != f.default)}
+                or (f.metadata.get("key") == KEY_UNLESS_DEFAULT and getattr(node, f.name) != _default(f))}
     if isinstance(node, (list, tuple)):
         return [config_key(v) for v in node]
     if isinstance(node, dict):
         return {k: config_key(v) for k, v in node.items()}
     return node
+
+
+def _default(f: dataclasses.Field) -> Any:
+    return f.default_factory() if f.default is dataclasses.MISSING and f.default_factory is not dataclasses.MISSING else f.default
 
 
 def key_of(kind: str, version: int, payload: Any) -> str:

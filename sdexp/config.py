@@ -66,8 +66,9 @@ class MeshConfig:
     # outline or a triangle mesh (2D), in any format meshio reads; null = the shape generator. Its
     # name is not part of the cache keys: its content is (digest), so an edited file is remeshed.
     file: Optional[str] = field(default=None, metadata=NOT_KEY)
-    scale: float = 1.0         # the file's unit in metres (0.001: the file is in millimetres)
-    digest: Optional[str] = None  # sha256 of the file's bytes, filled in when the config is read; not an input
+    # scale and digest were added after caches were built: keyed only away from their defaults
+    scale: float = field(default=1.0, metadata=UNLESS_DEFAULT)   # the file's unit in metres (0.001: millimetres)
+    digest: Optional[str] = field(default=None, metadata=UNLESS_DEFAULT)  # sha256 of the file's bytes, filled in when the config is read; not an input
 
     def __post_init__(self) -> None:
         # OmegaConf.to_object constructs this: every typed config of a file drone carries its digest
@@ -95,9 +96,9 @@ class DroneConfig:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     params: Dict[str, float] = field(default_factory=dict)  # shape-specific proportions
     # drone.mesh.file only (sdexp.sim.mesh.shapes.from_file): positions in metres (after mesh.scale)
-    rotors: List[Any] = field(default_factory=list)         # snapped onto the nearest surface facing ...
-    rotor_normals: List[Any] = field(default_factory=list)  # ... these thrust directions ([]: +Y)
-    imus: List[Any] = field(default_factory=list)           # peripheral IMUs, the order of s ([]: the rule)
+    rotors: List[Any] = field(default_factory=list, metadata=UNLESS_DEFAULT)         # snapped onto the nearest surface facing ...
+    rotor_normals: List[Any] = field(default_factory=list, metadata=UNLESS_DEFAULT)  # ... these thrust directions ([]: +Y)
+    imus: List[Any] = field(default_factory=list, metadata=UNLESS_DEFAULT)           # peripheral IMUs, the order of s ([]: the rule)
 
 
 @dataclass
