@@ -182,7 +182,33 @@ def model_at_hover(setup) -> dict:
         level = [0]
     return {"model_accel_at_hover": float(np.linalg.norm(f[sl["p_dot"]])),
             "model_tilt_accel_at_hover": float(np.linalg.norm(f[sl["e_dot"]][level])),
-            "model_torque_map_error": float(np.linalg.norm(B[sl["e_dot"]] - rigid) / np.linalg.norm(rigid))}
+            "model_torque_map_error": float(np.linalg.norm(B[sl["e_dot"]] - rigid) / np.linalg.norm(rigid)),
+            **data_torque_map(setup.data.arrays, rigid, level, float(setup.cfg.sim.control_dt),
+                              int(setup.cfg.model.command_delay))}
+
+
+def data_torque_map(arrays: dict, rigid: np.ndarray, level: list[int], dt: float, delay: int,
+                    max_tilt: float = 0.2) -> dict:
+    """What the drone's own data say its thrust-to-angular-acceleration map is, by least squares
+    on the transitions within ``max_tilt`` rad of level (angular acceleration on an intercept, the
+    command, the rates, bends and angles), against the rest shape's rigid map: with the command
+    sent at the transition (what the paper's nets learn from) and with the one acting on it,
+    ``delay`` steps older (model.command_delay). ``ratio``: the fitted map's projection on the
+    rigid one (1 = its size), ``error``: as model_torque_map_error."""
+    from sdexp.model.training import acting_commands, horizon_rows
+
+    acc = (arrays["e_dot_next"] - arrays["e_dot"]) / dt
+    near = np.flatnonzero(np.abs(arrays["e"][:, level]).max(axis=1) < max_tilt)
+    out = {}
+    for label, d in (("sent", 0), ("acting", delay)):
+        rows = np.intersect1d(near, horizon_rows(arrays, 1, d))
+        u = acting_commands(arrays, d)[rows]
+        X = np.c_[np.ones(len(rows)), u, *(arrays[k][rows] for k in ("e_dot", "s", "e"))].astype(np.float64)
+        fit = np.linalg.lstsq(X, acc[rows], rcond=None)[0][1:1 + u.shape[1]].T
+        out[f"data_torque_map_ratio_{label}"] = float(np.sum(fit * rigid) / np.sum(rigid * rigid))
+        out[f"data_torque_map_error_{label}"] = float(np.linalg.norm(fit - rigid) / np.linalg.norm(rigid))
+    out["data_level_transitions"] = int(len(near))
+    return out
 
 
 # ---------------------------------------------------------------------------------------- jobs
@@ -319,12 +345,12 @@ def _invocations(out_dir: Path, wall: float, jobs_run: int) -> list[dict]:
 
 
 def _fill_model_diagnostics(cfg, p: FleetParams, results: dict) -> None:
-    """Jobs written before ``model_at_hover`` joined the physics (resumed runs) get it from their
-    cached data and nets; nothing is flown again."""
+    """Jobs written before ``model_at_hover`` (or its data fit) joined the physics (resumed runs)
+    get it from their cached data and nets; nothing is flown again."""
     from sdexp.eval.flights import Setup
 
     for (name, seed), res in results.items():
-        if res["physics"] is None or "model_accel_at_hover" in res["physics"]:
+        if res["physics"] is None or "data_torque_map_ratio_acting" in res["physics"]:
             continue
         res["physics"].update(model_at_hover(Setup(job_config(cfg, name, seed, p), progress=False)))
 

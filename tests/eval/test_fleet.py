@@ -136,3 +136,21 @@ def test_bad_fleet_lists_name_the_valid_choices_before_anything_runs(tmp_path, o
     for w in words:
         assert w in str(err.value), str(err.value)
     assert not (tmp_path / "run").exists()
+
+
+def test_the_data_torque_map_fit_recovers_a_lagged_map_with_the_acting_command():
+    """Angular accelerations driven by the command sent two steps earlier, in 0.1 s holds: the fit
+    on the acting command finds the map, the one on the sent command a smaller one."""
+    from sdexp.eval.fleet import data_torque_map
+    rng = np.random.default_rng(0)
+    n, dt, lag, hold = 6000, 0.01, 2, 10
+    rigid = np.array([[1.0, -1.0, 0.5]])
+    u = np.repeat(rng.uniform(-1, 1, (n // hold, 3)), hold, axis=0)
+    episode = np.repeat(np.arange(n // 400), 400).astype(np.int32)
+    acting = np.concatenate([u[:lag], u[:-lag]])
+    e_dot = rng.normal(0, 0.01, (n, 1))
+    arrays = {"u": u, "episode": episode, "e": rng.normal(0, 0.05, (n, 1)), "s": np.zeros((n, 0)),
+              "e_dot": e_dot, "e_dot_next": e_dot + dt * (acting @ rigid.T + rng.normal(0, 0.5, (n, 1)))}
+    fit = data_torque_map(arrays, rigid, [0], dt, lag)
+    assert abs(fit["data_torque_map_ratio_acting"] - 1) < 0.05 and fit["data_torque_map_error_acting"] < 0.1
+    assert fit["data_torque_map_ratio_sent"] < 0.9 and fit["data_level_transitions"] == n
