@@ -89,9 +89,10 @@ def horizon_rows(data, horizon: int, delay: int = 0) -> np.ndarray:
     ep = np.asarray(a["episode"])
     u = acting_commands(a, delay)
     ok = np.ones(len(i), bool)
+    # an episode's rows are consecutive frames (generate.py)
     if delay:
-        ok &= (i >= delay) & (ep[np.maximum(i - delay, 0)] == ep[i])   # an episode's rows are consecutive
-    for j in range(1, horizon):   # frames (generate.py)
+        ok &= (i >= delay) & (ep[np.maximum(i - delay, 0)] == ep[i])
+    for j in range(1, horizon):
         ok &= (ep[i + j] == ep[i]) & np.all(u[i + j] == u[i], axis=1)
     return i[ok]
 
