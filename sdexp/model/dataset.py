@@ -194,18 +194,15 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
         from sdexp.model.generate import _simulator, hover_centre, sim_config
         drone, _ = _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
         spec = {**spec, "centre": hover_centre(drone, spec["data"], sim_config(spec))}  # once, not per worker
-    bar = Phase(f"data generation {spec['drone'].name} ({workers} worker{'s' if workers > 1 else ''})",
-                total=samples, initial=sum(sizes[c] for c in infos), unit="samples")
     t0 = time.perf_counter()
-    try:
+    # (an error or a kill closes the phase with a line that says it stopped)
+    with Phase(f"data generation {spec['drone'].name} ({workers} worker{'s' if workers > 1 else ''})",
+               total=samples, initial=sum(sizes[c] for c in infos), unit="samples") as bar:
         if todo and workers == 1:
             for c in todo:
                 infos[c] = _run_chunk(spec, key, c, sizes[c], str(_chunk_path(folder, c)), bar.update)
         elif todo:
             _run_pool(spec, key, folder, sizes, todo, workers, infos, bar)
-        bar.close()
-    finally:
-        bar.abort()   # an error or a kill stopped it: its line says so
     wall = time.perf_counter() - t0
 
     # merge, in chunk order; episode ids made global

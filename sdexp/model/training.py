@@ -231,8 +231,8 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     best_loss, best_state, best_epoch = float("inf"), None, epochs
     t0 = time.perf_counter()
     # a worker's progress goes through ``report`` to its parent's phase
-    bar = Phase(f"training net {name}", total=epochs, unit="epochs", enabled=progress and report is None)
-    try:
+    # (an error closes the phase with a line that says it stopped)
+    with Phase(f"training net {name}", total=epochs, unit="epochs", enabled=progress and report is None) as bar:
         for epoch in range(1, epochs + 1):
             net.train()
             perm = torch.randperm(len(X_tr), generator=gen)[: n_batches * bs]
@@ -263,9 +263,6 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
             bar.update()
             if report is not None:
                 report(1)
-        bar.close()
-    finally:
-        bar.abort()   # an error stopped it: its line says so
     seconds = time.perf_counter() - t0
     if best_state is not None:
         net.load_state_dict(best_state)
