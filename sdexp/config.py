@@ -217,6 +217,11 @@ class ControlConfig:
     relinearize: bool = True        # false: linearise once at a given operating point
     feedforward: bool = False       # ours: thrust that holds the goal's bends (not in the paper; relinearizing.py)
     riccati: str = "continuous"     # continuous (the paper) | discrete (gain of the 100 Hz sampled loop)
+    # ours regulates a bend channel only where its spread in the training data is at least this many
+    # times the IMU angle noise (noise.angle_std_deg; noise off: every bend); below, the bend is
+    # sensor noise and its learned dynamics a fit to noise (the stiff drones: spread 1.4-1.6x the
+    # noise; every soft drone 11x or more). 0: every bend (the paper). control/lqr.py regulated_states
+    bend_snr: float = 3.0
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 
 
@@ -626,6 +631,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(c.waypoint_max is None or c.waypoint_max > 0, "control.waypoint_max", c.waypoint_max, "> 0 or null")
     _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
     _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
+    _check(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
     f = cfg.flight
     _check(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
            "null or in (0, 180] deg")

@@ -93,15 +93,22 @@ def controllable_basis(A: np.ndarray, B: np.ndarray, rtol: float = 1e-9) -> np.n
     return V
 
 
-def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: float | None = None) -> np.ndarray:
+def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: float | None = None,
+             states: np.ndarray | None = None) -> np.ndarray:
     """K = R^-1 B^T S with 0 = S A + A^T S - S B R^-1 B^T S + Q; with ``dt`` the gain of the
-    sampled system (module docstring).
+    sampled system (module docstring). ``states``: the indices of x the controller regulates; the
+    gain is designed on their rows and columns of A, B and Q alone and is zero on the others
+    (None: all of them).
 
     A system with uncontrollable marginal modes (a rigid multicopter without rotor reaction
     torque cannot yaw) has no stabilising Riccati solution; then the gain is designed on the
     controllable subspace T (A_c = T^T A T, B_c = T^T B, Q_c = T^T Q T) and K = K_c T^T, which
     leaves the uncontrollable modes alone -- nothing could move them. An uncontrollable mode
     that grows (the system is not stabilisable) raises LqrFailure."""
+    if states is not None and len(states) < len(A):
+        K = np.zeros((B.shape[1], len(A)))
+        K[:, states] = lqr_gain(A[np.ix_(states, states)], B[states], Q[np.ix_(states, states)], R, dt)
+        return K
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
         raise LqrFailure("A or B is not finite")
     gain = _care_gain if dt is None else (lambda *m: _dare_gain(*m, dt))
@@ -120,6 +127,24 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: flo
             return gain(T.T @ A @ T, T.T @ B, T.T @ Q @ T, R) @ T.T
         except (np.linalg.LinAlgError, ValueError) as err:
             raise LqrFailure(f"{first}; on the controllable subspace: {err}") from err
+
+
+def regulated_states(sizes: dict[str, int], bend_spread, angle_noise: float, snr: float) -> np.ndarray:
+    """Indices of x = (s, s_dot, e, e_dot, p, p_dot) the LQR regulates: every attitude and position
+    channel, and the bends (with their rates) whose spread in the training data, ``bend_spread``
+    (rad, one per bend), is at least ``snr`` times the IMU angle noise ``angle_noise`` (rad). Below
+    that a bend channel is sensor noise and its learned dynamics a fit to noise: on the stiff drones
+    (hover thrust bends them 0.04-0.17 deg under 0.573 deg of noise; spread 1.4-1.6x the noise) the
+    fit has unstable or barely reachable bend modes and the LQR answers them with gains of
+    200-500 N/rad, saturated alternating thrust. snr = 0 or no spread known: every channel."""
+    n_s = int(sizes["n_s"])
+    n = 2 * (n_s + int(sizes["n_e"]) + int(sizes["dim"]))
+    keep = np.ones(n, bool)
+    if snr > 0 and bend_spread is not None and n_s:
+        noisy = np.asarray(bend_spread, dtype=float) < snr * angle_noise
+        keep[:n_s] &= ~noisy
+        keep[n_s:2 * n_s] &= ~noisy
+    return np.flatnonzero(keep)
 
 
 def state_weights(sizes: dict[str, int], q_s: float, q_e: float, q_p: float, velocity_scale: float,

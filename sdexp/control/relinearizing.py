@@ -43,6 +43,10 @@ A model learned with a command delay (``model.command_delay`` d > 0, our extensi
 chosen now acts d steps from now, so the controller works on the state the learned model
 predicts for then, from the measured state and the d commands already sent (a Smith predictor);
 the rotors are idle before the first command.
+
+``regulated`` (our extension; None: every state, the paper): the indices of x the LQR regulates,
+the others get no gain and no feed-forward row (sdexp.control.lqr.regulated_states: the bends
+whose spread in the training data is sensor noise).
 """
 from __future__ import annotations
 
@@ -62,7 +66,8 @@ class RelinearizingLQR:
 
     def __init__(self, dyn: LearnedDynamics, q_diag: np.ndarray, r: float, kp: float, kd: float, n: int,
                  max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None,
-                 dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None):
+                 dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None,
+                 regulated: np.ndarray | None = None):
         if n < 1:
             raise ValueError("n must be >= 1")
         if feedforward and not relinearize:
@@ -73,6 +78,9 @@ class RelinearizingLQR:
         self.waypoint_max = waypoint_max
         # the velocity rows of f: zero at rest, what equilibrium_thrust solves for
         self._rates = np.concatenate([np.arange(dyn.n)[dyn.slices[k]] for k in ("s_dot", "e_dot", "p_dot")])
+        self.regulated = None if regulated is None else np.asarray(regulated, dtype=int)
+        if self.regulated is not None:
+            self._rates = np.intersect1d(self._rates, self.regulated)
         self.dyn, self.kp, self.kd, self.n, self.max_thrust = dyn, kp, kd, int(n), max_thrust
         self.Q, self.R = np.diag(q_diag), r * np.eye(dyn.m)
         self.relinearize = relinearize
@@ -98,7 +106,7 @@ class RelinearizingLQR:
             if self.x_op is None or self.u_op is None:
                 raise ValueError("relinearize=False needs an operating point (x_op, u_op)")
             _, A, B = self.dyn.linearize(self.x_op, self.u_op)
-            self.K = lqr_gain(A, B, self.Q, self.R, self.dt)
+            self.K = lqr_gain(A, B, self.Q, self.R, self.dt, self.regulated)
             self.u_oper = np.asarray(self.u_op, dtype=float).copy()
 
     def equilibrium_thrust(self, x: np.ndarray, u: np.ndarray, steps: int = 2) -> np.ndarray:
@@ -117,7 +125,7 @@ class RelinearizingLQR:
             if self.relinearize:
                 t0 = time.perf_counter()
                 x_dot, A, B = self.dyn.linearize(x, self.u)
-                self.K = lqr_gain(A, B, self.Q, self.R, self.dt)
+                self.K = lqr_gain(A, B, self.Q, self.R, self.dt, self.regulated)
                 self.timings.append(time.perf_counter() - t0)
                 self.u_oper = self.u.copy()
             else:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sdexp.control.lqr import state_weights
+from sdexp.control.lqr import regulated_states, state_weights
 from sdexp.control.neural import NeuralController, load_or_train_policy
 from sdexp.control.relinearizing import RelinearizingLQR
 from sdexp.control.rigid import RigidGeometry, RigidLQR
@@ -37,9 +37,13 @@ def riccati_step(cfg) -> float | None:
 
 def ours(cfg, dyn, max_thrust: float, **kw) -> RelinearizingLQR:
     c = cfg.control
-    q = state_weights(state_sizes_of(dyn), c.q_s, c.q_e, c.q_p, c.velocity_scale, c.q_p_axes, c.q_e_axes)
+    sizes = state_sizes_of(dyn)
+    q = state_weights(sizes, c.q_s, c.q_e, c.q_p, c.velocity_scale, c.q_p_axes, c.q_e_axes)
+    noise = np.radians(float(cfg.noise.angle_std_deg)) if cfg.noise.enabled else 0.0
+    regulated = regulated_states(sizes, getattr(dyn, "bend_spread", None), noise, float(c.bend_snr))
     return RelinearizingLQR(dyn, q, c.r, c.kp, c.kd, c.n, max_thrust, dt=riccati_step(cfg),
-                            feedforward=bool(c.feedforward), waypoint_max=c.waypoint_max, **kw)
+                            feedforward=bool(c.feedforward), waypoint_max=c.waypoint_max,
+                            regulated=None if len(regulated) == len(q) else regulated, **kw)
 
 
 def state_sizes_of(dyn) -> dict[str, int]:

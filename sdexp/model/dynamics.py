@@ -102,14 +102,17 @@ class _one_thread:
 class LearnedDynamics:
     def __init__(self, nets: Mapping[str, ResidualMLP], n_s: int, n_e: int, dim: int, m: int,
                  alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64,
-                 dt: float | None = None, delay: int = 0):
+                 dt: float | None = None, delay: int = 0, bend_spread=None):
         """``alpha``: the time between a network's input and its target (model.horizon frames);
         ``dt``: one control interval (default alpha), the step of a simulated rollout; ``delay``:
         control steps from a command to the thrust it sets (model.command_delay): u in f(x, u) is
-        the command acting now, the one sent ``delay`` steps ago."""
+        the command acting now, the one sent ``delay`` steps ago; ``bend_spread``: the standard
+        deviation of each bend channel s in the data the nets learned from (None: not known), what
+        tells a controller which bends the model saw move above the sensors' noise."""
         self.n_s, self.n_e, self.dim, self.m, self.alpha = int(n_s), int(n_e), int(dim), int(m), float(alpha)
         self.dt = self.alpha if dt is None else float(dt)
         self.delay = int(delay)
+        self.bend_spread = None if bend_spread is None else np.asarray(bend_spread, dtype=float)
         sizes = {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim}
         self.slices: dict[str, slice] = {}
         o = 0
@@ -142,7 +145,10 @@ class LearnedDynamics:
         """From a :class:`~sdexp.model.training.TrainedNets` and the dataset it was trained on;
         ``dt`` the control interval, ``horizon`` the frames between a net's input and target,
         ``delay`` the command delay they were trained with."""
-        return cls(trained.nets, **state_sizes(data), alpha=dt * horizon, specs=trained.specs, dt=dt, delay=delay)
+        a = data.arrays if hasattr(data, "arrays") else data
+        spread = np.asarray(a["s"], dtype=float).reshape(len(a["s"]), -1).std(axis=0) if "s" in a else None
+        return cls(trained.nets, **state_sizes(data), alpha=dt * horizon, specs=trained.specs, dt=dt, delay=delay,
+                   bend_spread=spread)
 
     # ------------------------------------------------------------------------------ torch
     def net_outputs(self, z: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from sdexp.control.lqr import LqrFailure, controllable_basis, lqr_gain, state_weights
+from sdexp.control.lqr import LqrFailure, controllable_basis, lqr_gain, regulated_states, state_weights
 
 DOUBLE_INTEGRATOR = (np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]))
 
@@ -224,3 +224,31 @@ def test_sampled_gain_approaches_the_continuous_one_and_stays_stable_where_it_do
     Kd = lqr_gain(A, B, Q, R, dt=dt)
     radius = lambda K: np.abs(np.linalg.eigvals(np.eye(2) + dt * (A - B @ K))).max()
     assert radius(Kc) > 1.0 > radius(Kd)
+
+
+def test_bends_whose_spread_is_sensor_noise_are_not_regulated():
+    sizes = {"n_s": 3, "n_e": 1, "dim": 2}      # x: s(3), s_dot(3), e, e_dot, p(2), p_dot(2)
+    noise = np.radians(0.573)
+    # bend 1 spreads 1.5x the noise (a stiff body's), bends 0 and 2 well above 3x
+    spread = np.array([0.2, 1.5 * noise, 4 * noise])
+    np.testing.assert_array_equal(regulated_states(sizes, spread, noise, 3.0), [0, 2, 3, 5, 6, 7, 8, 9, 10, 11])
+    everything = np.arange(12)
+    np.testing.assert_array_equal(regulated_states(sizes, spread, noise, 0.0), everything)   # the paper
+    np.testing.assert_array_equal(regulated_states(sizes, None, noise, 3.0), everything)     # spread unknown
+    np.testing.assert_array_equal(regulated_states(sizes, spread, 0.0, 3.0), everything)     # noise-free sensors
+    assert len(regulated_states({"n_s": 0, "n_e": 3, "dim": 3}, None, noise, 3.0)) == 12
+
+
+def test_a_gain_on_some_states_is_their_subsystems_gain_and_zero_elsewhere():
+    """A double integrator (states 1, 2) beside a spurious unstable mode (state 0) that the input
+    barely reaches and that drives nothing: on every state the LQR must spend a large gain on the
+    spurious mode; on states 1, 2 it is the double integrator's closed form, exactly zero on 0."""
+    A = np.array([[5.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    B = np.array([[1e-3], [0.0], [1.0]])
+    Q, R = np.diag([100.0, 100.0, 100.0]), np.array([[2.0]])
+    full = lqr_gain(A, B, Q, R)
+    assert abs(full[0, 0]) > 1e3 * abs(full[0, 1])
+    K = lqr_gain(A, B, Q, R, states=np.array([1, 2]))
+    assert K[0, 0] == 0.0
+    np.testing.assert_allclose(K[:, 1:], analytic_double_integrator_gain(100.0, 100.0, 2.0), rtol=1e-9)
+    np.testing.assert_array_equal(lqr_gain(A, B, Q, R, states=np.arange(3)), full)

@@ -362,3 +362,49 @@ def test_a_model_with_the_command_delay_predicts_the_state_its_command_will_meet
         X = fly_lagged(ctl, model, lag, np.zeros(model.n), 4.0)
         errors[name] = np.abs(X[-100:, model.slices["p"]] - target).max()
     assert errors["predicted"] < 0.05 and errors["ignored"] > 1.0, errors
+
+
+class NoiseFitBend(PlanarCopter):
+    """A stiff copter's learned model: the bend channel it was given is sensor noise, and its fit
+    of it an unstable mode the thrust barely reaches (s_ddot = 25 s + 0.002 (u0 - u1)); the body
+    itself does not bend (the truth is PlanarCopter(n_s=1) with s held at 0 by a stiff spring)."""
+
+    def f(self, x, u):
+        out = super().f(x, u)
+        sl = self.slices
+        out[sl["s_dot"]] = 25.0 * np.asarray(x)[sl["s"]] + 0.002 * (u[0] - u[1])
+        return out
+
+
+def test_a_bend_left_out_of_the_regulated_states_gets_no_gain_and_the_copter_hovers():
+    model, truth = NoiseFitBend(True, n_s=1), PlanarCopter(True, n_s=1)
+    task = Task(start=np.zeros(2), target=np.zeros(2), seconds=10.0, n_s=1)
+    every = RelinearizingLQR(model, weights(model), r=2.0, kp=1.0, kd=0.0, n=5, max_thrust=TMAX)
+    every.reset(task)
+    with pytest.raises(LqrFailure):                             # the noise fit has no usable gain ...
+        every.act(0.0, state_of(model, np.zeros(model.n)))
+    without = RelinearizingLQR(model, weights(model), r=2.0, kp=1.0, kd=0.0, n=5, max_thrust=TMAX,
+                               regulated=np.arange(2, model.n), feedforward=True)
+    without.reset(task)
+    X, U = fly(model, without, np.zeros(model.n), 10.0, truth=truth)
+    assert np.all(without.K[:, :2] == 0.0)                      # ... and nothing without the bend
+    assert 1 not in without._rates                              # nor a feed-forward row
+    sl = model.slices
+    assert np.linalg.norm(X[-1, sl["p"]]) < 1e-2 and abs(X[-1, sl["e"]][0]) < 1e-3
+
+
+@pytest.mark.parametrize("overrides, regulated", [
+    ([], [0, 2, 4, 5, 6, 7, 8, 9]),                     # bend 1 spreads 1.5x the 0.573 deg noise: left out
+    (["control.bend_snr=0"], None),                    # the paper: every bend
+    (["noise=none"], None),                            # noise-free sensors: every bend is signal
+])
+def test_ours_regulates_the_bends_its_training_data_saw_above_the_noise(overrides, regulated):
+    from hydra import compose, initialize_config_module
+    from sdexp.eval.controllers import ours
+    from sdexp.eval.experiments import typed
+    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
+        cfg = typed(compose(config_name="config", overrides=overrides))
+    dyn = PlanarCopter(True, n_s=2)
+    dyn.bend_spread = np.array([0.3, 1.5 * np.radians(0.573)])
+    ctl = ours(cfg, dyn, TMAX)
+    assert (ctl.regulated is None) if regulated is None else ctl.regulated.tolist() == regulated
