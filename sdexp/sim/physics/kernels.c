@@ -17,6 +17,8 @@
 static int omp_get_thread_num(void) { return 0; }
 #endif
 #define B 32  /* elements per SIMD block */
+#define VT 64 /* vertices per tile of the velocity update */
+#define G 8   /* vertices per group of the element-row layout's vertex pass (SIMD lanes) */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
 /* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
  * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
@@ -35,7 +37,24 @@ typedef struct {
     const double *boxes_min, *boxes_max, *weights, *thrust, *gravity_share;
     const int32_t *el;
     const int64_t *face_ptr, *faces, *vert_ptr, *verts;
+    /* the element-row layout (3D quadratic; NULL: the scatter layout): hbuf (nb, 10, B, 4) real,
+     * each element node's force (x, y, z, 0), then one zero node; el (nb, 10, B); the vertex
+     * pass's groups (forces.h, vertex_forces), those of thread t's vertices from grp_ptr[t] */
+    void *hbuf;
+    const int64_t *grp_ptr, *ell_ptr;
+    const int32_t *ell, *gvert;
 } Step;
+
+/* Four doubles, a 256-bit register where there is one (the element-row layout's vertex pass);
+ * load4 / load4_f32 read four reals from any 8- / 4-byte aligned address, as doubles. */
+typedef double v4d __attribute__((vector_size(32)));
+typedef double v4d_u __attribute__((vector_size(32), aligned(8)));
+typedef float v4f_u __attribute__((vector_size(16), aligned(4)));
+static inline __attribute__((always_inline)) v4d load4(const double *p) { return *(const v4d_u *)p; }
+static inline __attribute__((always_inline)) v4d load4_f32(const float *p)
+{
+    return __builtin_convertvector(*(const v4f_u *)p, v4d);
+}
 
 /* The element force kernels, in double (sim.precision = float64) and in float (float32, names
  * ending _f32): one source, forces.h, included once per type. */
@@ -61,6 +80,9 @@ typedef struct {
 
 /* The element block the 3D step reads its element data in (Body lays them out so). */
 int block_size(void) { return B; }
+
+/* The vertices per group of the element-row layout's vertex pass (Body lays them out so). */
+int group_size(void) { return G; }
 
 
 
@@ -162,45 +184,75 @@ static inline __attribute__((always_inline)) void contact(const Step *restrict s
     }
 }
 
+/* The summed forces (elastic, rotor, effects) on vertices [i0, i0 + n) into F: ext + fext and
+ * the elastic forces of each thread's buffer fbuf[t] in turn (the element-row layout: fbuf[0]
+ * alone, the vertex pass's sums). */
+static inline __attribute__((always_inline)) void tile_forces(const Step *restrict s, const int d,
+        int64_t i0, int n, double (*restrict F)[VT])
+{
+    const int64_t nv = s->nv, nt = s->ell ? 1 : s->nt;
+    const double *restrict ext = s->ext, *restrict fext = s->fext, *restrict fb = s->fbuf;
+    #pragma omp simd
+    for (int j = 0; j < n; j++) {
+        const int64_t i = i0 + j;
+        F[0][j] = ext[d * i] + fext[d * i]; F[1][j] = ext[d * i + 1] + fext[d * i + 1];
+        F[2][j] = d == 3 ? ext[d * i + 2] + fext[d * i + 2] : 0.0;
+    }
+    for (int64_t k = 0; k < nt; k++) {
+        #pragma omp simd
+        for (int j = 0; j < n; j++) {
+            const double *g = fb + d * (nv * k + i0 + j);
+            F[0][j] += g[0]; F[1][j] += g[1];
+            if (d == 3) F[2][j] += g[2];
+        }
+    }
+}
+
 /* Velocity update of vertices [v0, v1): all forces, gravity, damping of the absolute velocity;
- * adds their deformation-damping sums (relative to ref) into my. d is a literal at each call,
- * so the compiler drops the z arithmetic in 2D. */
-static inline __attribute__((always_inline)) void kick(const Step *restrict s, const int d,
+ * adds their deformation-damping sums (relative to ref) into my. In tiles of VT vertices: their
+ * forces summed first (tile_forces), then one SIMD loop. d and sums are literals at each call,
+ * so the compiler drops the z arithmetic in 2D and the sums when there is no deformation damping. */
+static inline __attribute__((always_inline)) void kick_impl(const Step *restrict s, const int d, const int sums,
         int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
 {
-    const int64_t nv = s->nv, nt = s->nt;
     const double dt = s->dt, grav = s->gravity;
-    const double *restrict ext = s->ext, *restrict fext = s->fext, *restrict fb = s->fbuf;
     const double *restrict minv = s->minv, *restrict mass = s->mass, *restrict x = s->x;
     const double *restrict gshare = s->gravity_share;
     double *restrict v = s->v;
-    const int sums = s->deform_damping > 0.0;
+    const double r0 = ref[0], r1 = ref[1], r2 = ref[2];
     double M = 0, rx = 0, ry = 0, rz = 0, px = 0, py = 0, pz = 0, lx = 0, ly = 0, lz = 0;
     double sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-    for (int64_t i = v0; i < v1; i++) {
-        double fx = ext[d * i] + fext[d * i], fy = ext[d * i + 1] + fext[d * i + 1], fz = 0.0;
-        if (d == 3) fz = ext[d * i + 2] + fext[d * i + 2];
-        for (int64_t k = 0; k < nt; k++) {
-            const double *g = fb + d * (nv * k + i);
-            fx += g[0]; fy += g[1];
-            if (d == 3) fz += g[2];
-        }
-        double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0;
-        double ux = (v[d * i] + dt * fx * mi) * scale, uy = (v[d * i + 1] + dt * (fy * mi - g)) * scale, uz = 0.0;
-        v[d * i] = ux; v[d * i + 1] = uy;
-        if (d == 3) { uz = (v[d * i + 2] + dt * fz * mi) * scale; v[d * i + 2] = uz; }
-        if (sums && mi != 0.0) {
-            double m = mass[i], ax = x[d * i] - ref[0], ay = x[d * i + 1] - ref[1], az = 0.0;
-            if (d == 3) az = x[d * i + 2] - ref[2];
-            M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
-            lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
-            sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
-            syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+    double F[3][VT];
+    for (int64_t i0 = v0; i0 < v1; i0 += VT) {
+        const int n = v1 - i0 < VT ? (int)(v1 - i0) : VT;
+        tile_forces(s, d, i0, n, F);
+        #pragma omp simd reduction(+:M, rx, ry, rz, px, py, pz, lx, ly, lz, sxx, sxy, sxz, syy, syz, szz)
+        for (int j = 0; j < n; j++) {
+            const int64_t i = i0 + j;
+            double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0;
+            double ux = (v[d * i] + dt * F[0][j] * mi) * scale, uy = (v[d * i + 1] + dt * (F[1][j] * mi - g)) * scale, uz = 0.0;
+            v[d * i] = ux; v[d * i + 1] = uy;
+            if (d == 3) { uz = (v[d * i + 2] + dt * F[2][j] * mi) * scale; v[d * i + 2] = uz; }
+            if (sums) {   /* pinned vertices (minv 0) count with no mass */
+                double m = mi != 0.0 ? mass[i] : 0.0, ax = x[d * i] - r0, ay = x[d * i + 1] - r1, az = 0.0;
+                if (d == 3) az = x[d * i + 2] - r2;
+                M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
+                lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
+                sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
+                syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+            }
         }
     }
     my[S_M] = M; my[S_R] = rx; my[S_R + 1] = ry; my[S_R + 2] = rz; my[S_P] = px; my[S_P + 1] = py; my[S_P + 2] = pz;
     my[S_L] = lx; my[S_L + 1] = ly; my[S_L + 2] = lz;
     my[S_S] = sxx; my[S_S + 1] = sxy; my[S_S + 2] = sxz; my[S_S + 3] = syy; my[S_S + 4] = syz; my[S_S + 5] = szz;
+}
+
+static inline __attribute__((always_inline)) void kick(const Step *restrict s, const int d,
+        int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
+{
+    if (s->deform_damping > 0.0) kick_impl(s, d, 1, v0, v1, scale, ref, my);
+    else kick_impl(s, d, 0, v0, v1, scale, ref, my);
 }
 
 /* Deformation damping (keep < 1 when damp) towards the rigid velocity p + w x (x - ref - c),
@@ -214,6 +266,26 @@ static inline __attribute__((always_inline)) double drift(const Step *restrict s
     double *restrict x = s->x, *restrict v = s->v;
     const int contacts = s->ground > -1e300 || s->n_boxes > 0;  /* Body passes -1e300 for none */
     double vmax = 0.0;
+    if (!contacts) {   /* the same arithmetic, branch-free: one SIMD loop */
+        #pragma omp simd reduction(max:vmax)
+        for (int64_t i = v0; i < v1; i++) {
+            double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
+            double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
+            if (damp) {
+                const int on = minv[i] != 0.0;
+                double ax = qx - ref[0] - c[0], ay = qy - ref[1] - c[1], az = d == 3 ? qz - ref[2] - c[2] : 0.0;
+                double gx = p[0] + w[1] * az - w[2] * ay, gy = p[1] + w[2] * ax - w[0] * az;
+                ux = on ? gx + keep * (ux - gx) : ux; uy = on ? gy + keep * (uy - gy) : uy;
+                if (d == 3) { double gz = p[2] + w[0] * ay - w[1] * ax; uz = on ? gz + keep * (uz - gz) : uz; }
+            }
+            qx += dt * ux; qy += dt * uy; qz += dt * uz;
+            x[d * i] = qx; x[d * i + 1] = qy; v[d * i] = ux; v[d * i + 1] = uy;
+            if (d == 3) { x[d * i + 2] = qz; v[d * i + 2] = uz; }
+            double sp = ux * ux + uy * uy + uz * uz;
+            vmax = sp > vmax ? sp : vmax;
+        }
+        return vmax;
+    }
     for (int64_t i = v0; i < v1; i++) {
         double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
         double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
@@ -262,7 +334,7 @@ int advance(const Step *s, double *vmax2)
         const int64_t vc = (nv + nt - 1) / nt, v0 = t * vc, v1 = v0 + vc < nv ? v0 + vc : nv;
         double *f = s->fbuf + d * nv * t, *my = sums + S_STRIDE * t;
         for (int64_t sub = 0; sub < s->n_sub; sub++) {
-            memset(f, 0, (size_t)(d * nv) * sizeof(double));
+            if (!s->ell) memset(f, 0, (size_t)(d * nv) * sizeof(double));
             inv[t] = e0 >= e1 ? 0 : step_forces(s, f, e0, e1);
             if (t == 0) rotor_forces(s);
             #pragma omp barrier
@@ -273,6 +345,10 @@ int advance(const Step *s, double *vmax2)
             }
             /* sums relative to a vertex, not the origin: far from it they would cancel */
             const double ref[3] = {s->x[0], s->x[1], d == 3 ? s->x[2] : 0.0};
+            if (s->ell) {   /* the element-row layout: this thread's vertices' elastic forces */
+                if (s->single) vertex_forces_f32(s, s->grp_ptr[t], s->grp_ptr[t + 1], s->fbuf);
+                else vertex_forces(s, s->grp_ptr[t], s->grp_ptr[t + 1], s->fbuf);
+            }
             if (d == 3) kick(s, 3, v0, v1, scale, ref, my);
             else kick(s, 2, v0, v1, scale, ref, my);
             #pragma omp barrier
@@ -302,8 +378,12 @@ int forces_only(const Step *s, int64_t reps)
 {
     int inverted = 0;
     for (int64_t r = 0; r < reps; r++) {
-        memset(s->fbuf, 0, (size_t)(s->dim * s->nv) * sizeof(double));
+        if (!s->ell) memset(s->fbuf, 0, (size_t)(s->dim * s->nv) * sizeof(double));
         inverted = step_forces(s, s->fbuf, 0, s->ne);
+        if (s->ell) {   /* the element-row layout: the vertex pass's sums */
+            if (s->single) vertex_forces_f32(s, 0, s->grp_ptr[s->nt], s->fbuf);
+            else vertex_forces(s, 0, s->grp_ptr[s->nt], s->fbuf);
+        }
     }
     return inverted;
 }
