@@ -147,7 +147,7 @@ int NAME(corotated_forces_3d)(const double *x, const int32_t *el, const real *Bm
 /* ------------------------------------------------------------------------------------------
  * Quadratic elements (quadratic.py has the math and the numba reference p2_range_3d/_2d).
  * 10-node tets, VTK order: corners 0-3, edges 4 (0,1) 5 (1,2) 6 (0,2) 7 (0,3) 8 (1,3) 9 (2,3).
- * Blocked like forces_impl: el (nb B, 10), Bm (nb, 9, B), vol (nb, B), q (nb, 16, B) holding
+ * Blocked like forces_impl, el too: el (nb, 10, B), Bm (nb, 9, B), vol (nb, B), q (nb, 16, B) holding
  * one warm-start quaternion per quadrature point (slot k at rows 4k..4k+3). */
 /* One quadrature point (barycentric L0..L3, literals at each call so the compiler folds them)
  * of a block of B tets: F from the effective corner positions (D: node offsets from node 0),
@@ -213,90 +213,44 @@ static inline __attribute__((always_inline)) int NAME(p2_point)(const real L0, c
     return bad;
 }
 
-/* hout NULL: the forces are added into f (nv, 3) element by element (the scatter layout); else
- * (the element-row layout) each element node's force is written to hout (nb, 10, B, 4) as
- * x, y, z, 0, for the vertex pass to sum (NAME(vertex_forces)): no scalar scatter here, and
- * el is (nb, 10, B), the node offsets read in SIMD gathers. */
+/* Quadratic tets [e0, e1) into f (nv, 3). el is (nb, 10, B), so the node offsets are read lane
+ * by lane in SIMD gathers; the nodal forces are added into f by a scalar scatter, element by
+ * element. (Measured against it on the flower, issue 25: a four-wide scatter into rows
+ * (x, y, z, 0) after a SIMD transposition, and leaving the forces per element node for the
+ * velocity update to sum per vertex, both no faster: docs/speed.md.) */
 static int NAME(p2_forces_blocked)(const double *restrict x, const int32_t *restrict el, const real *restrict Bm,
         const real *restrict vol, real mu, real lam, real *restrict q, double *restrict f,
-        real *restrict hout, int64_t e0, int64_t e1)
+        int64_t e0, int64_t e1)
 {
     int inverted = 0;
-    real D[27][B], Hl[30][B];
+    real D[27][B], H[30][B];
     for (int64_t base = e0; base < e1; base += B) {
         int n = (e1 - base) < B ? (int)(e1 - base) : B;
         const real *Mp = Bm + 9 * base, *Vp = vol + base;
         real *Qp = q + 16 * base;
-        real (*restrict H)[B] = Hl;
-        if (hout) {   /* el blocked as (nb, 10, B): the node offsets in SIMD gathers */
-            const int32_t *restrict T = el + 10 * base;
-            double P0[3][B];
+        const int32_t *restrict T = el + 10 * base;   /* node a of lane i: T[a B + i]; padding: vertex 0 */
+        double P0[3][B];
+        for (int c = 0; c < 3; c++) {
+            #pragma omp simd
+            for (int i = 0; i < B; i++) P0[c][i] = x[3 * T[i] + c];
+        }
+        for (int a = 1; a < 10; a++)
             for (int c = 0; c < 3; c++) {
                 #pragma omp simd
-                for (int i = 0; i < B; i++) P0[c][i] = x[3 * T[i] + c];
+                for (int i = 0; i < B; i++) D[3 * (a - 1) + c][i] = x[3 * T[a * B + i] + c] - P0[c][i];
             }
-            for (int a = 1; a < 10; a++)
-                for (int c = 0; c < 3; c++) {
-                    #pragma omp simd
-                    for (int i = 0; i < B; i++) D[3 * (a - 1) + c][i] = x[3 * T[a * B + i] + c] - P0[c][i];
-                }
-        } else
-        for (int i = 0; i < B; i++) {   /* rows past e1 are padding: node 0 ten times */
-            const int32_t *t = el + 10 * (base + i);
-            const double *p0 = x + 3 * t[0];
-            for (int a = 1; a < 10; a++)
-                for (int c = 0; c < 3; c++) D[3 * (a - 1) + c][i] = x[3 * t[a] + c] - p0[c];
-        }
-        memset(H, 0, sizeof(Hl));
+        memset(H, 0, sizeof(H));
         inverted += NAME(p2_point)(QA, QB, QB, QB, D, Mp, Vp, Qp, mu, lam, H)
                   | NAME(p2_point)(QB, QA, QB, QB, D, Mp, Vp, Qp + 4 * B, mu, lam, H)
                   | NAME(p2_point)(QB, QB, QA, QB, D, Mp, Vp, Qp + 8 * B, mu, lam, H)
                   | NAME(p2_point)(QB, QB, QB, QA, D, Mp, Vp, Qp + 12 * B, mu, lam, H);
-        if (hout) {   /* node a of lane i to hout[((block 10 + a) B + i) 4 + c]: x, y, z, 0 */
-            real *restrict o = hout + 40 * base;
+        for (int i = 0; i < n; i++)
             for (int a = 0; a < 10; a++) {
-                #pragma omp simd
-                for (int i = 0; i < B; i++) {
-                    o[4 * (B * a + i)] = H[3 * a][i]; o[4 * (B * a + i) + 1] = H[3 * a + 1][i];
-                    o[4 * (B * a + i) + 2] = H[3 * a + 2][i]; o[4 * (B * a + i) + 3] = R_(0.0);
-                }
+                const int64_t v = 3 * (int64_t)T[a * B + i];
+                for (int c = 0; c < 3; c++) f[v + c] += H[3 * a + c][i];
             }
-            continue;
-        }
-        for (int i = 0; i < n; i++) {
-            const int32_t *t = el + 10 * (base + i);
-            for (int a = 0; a < 10; a++)
-                for (int c = 0; c < 3; c++) f[3 * t[a] + c] += H[3 * a + c][i];
-        }
     }
     return inverted;
-}
-
-/* The vertex pass of the element-row layout (s->ell set): the summed elastic forces of vertex
- * groups [g0, g1) into f (nv, 3). A group is G vertices (gvert, -1 for none) and K rows of G
- * offsets into hbuf (ell from ell_ptr[g]: row k holds each vertex's k-th (element, node) in
- * element order, padded with the offset of hbuf's last, zero node): one 4-wide vector add per
- * (element, node), each vertex's forces added in element order from 0, the additions a
- * scatter in element order would make. The G sums stay in registers; K is the same for all
- * G, so the loop's branches are predictable (a loop per vertex mispredicted its exit). */
-static inline __attribute__((always_inline)) void NAME(vertex_forces)(const Step *restrict s, int64_t g0, int64_t g1,
-        double *restrict f)
-{
-    const real *restrict hb = s->hbuf;
-    const int64_t *restrict ptr = s->ell_ptr;
-    const int32_t *restrict ell = s->ell, *restrict gv = s->gvert;
-    for (int64_t g = g0; g < g1; g++) {
-        const int32_t *restrict o = ell + ptr[g];
-        const int64_t K = (ptr[g + 1] - ptr[g]) / G;
-        v4d acc[G];
-        for (int j = 0; j < G; j++) acc[j] = (v4d){0.0, 0.0, 0.0, 0.0};
-        for (int64_t k = 0; k < K; k++)
-            for (int j = 0; j < G; j++) acc[j] += NAME(load4)(hb + o[G * k + j]);
-        for (int j = 0; j < G; j++) {
-            const int32_t i = gv[G * g + j];
-            if (i >= 0) { f[3 * i] = acc[j][0]; f[3 * i + 1] = acc[j][1]; f[3 * i + 2] = acc[j][2]; }
-        }
-    }
 }
 
 /* 6-node triangles [e0, e1) into f (nv, 2), plane strain (quadratic.p2_range_2d): corners 0-2,
@@ -385,8 +339,7 @@ static int NAME(element_forces)(const Step *s, double *f, int64_t e0, int64_t e1
 {
     const real *Bm = s->Bm, *vol = s->vol;
     real *q = s->q;
-    return s->nodes == 10 ? NAME(p2_forces_blocked)(s->x, s->el, Bm, vol, s->mu, s->lam, q, f,
-                                                    s->ell ? s->hbuf : NULL, e0, e1)
+    return s->nodes == 10 ? NAME(p2_forces_blocked)(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
          : s->nodes == 6 ? NAME(p2_forces_range_2d)(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1)
          : s->dim == 3 ? NAME(forces_blocked)(s->x, s->el, Bm, vol, s->mu, s->lam, q, f, e0, e1)
                        : NAME(forces_range_2d)(s->x, s->el, Bm, vol, s->mu, s->lam, f, e0, e1);

@@ -221,12 +221,6 @@ def advance(kernel, n_sub, dt, x, v, q, fbuf, elems, Bm, vol, mu, lam, minv, mas
     return worst, vmax2
 
 
-# kernels.c's element force layouts (Body's ``layout``; the compiled 3D quadratic step only, every
-# other step scatters): "rows", each element's nodal forces left in a buffer as the SIMD loop
-# computes them and summed per vertex in the velocity update's pass; "scatter", added into the
-# force buffer element by element (the layout before issue 25, kept for the benchmark's comparison).
-LAYOUTS = ("rows", "scatter")
-
 _NO_ROTORS = (np.zeros(1, np.int64), np.zeros((0, 3), np.int64), np.zeros(1, np.int64),
               np.zeros(0, np.int64), np.zeros(0))
 
@@ -245,8 +239,7 @@ class Body:
 
     def __init__(self, fem: FemModel, threads: int = 1, rotors=None, ground: float | None = None,
                  boxes_min=None, boxes_max=None, friction: float = 0.0, pinned=None,
-                 compiled: bool = True, precision: str = "float64", added_mass=None,
-                 layout: str = "rows"):
+                 compiled: bool = True, precision: str = "float64", added_mass=None):
         d = fem.dim
         self.fem = fem
         self.real = PRECISIONS[precision]
@@ -275,64 +268,22 @@ class Body:
         self._elements = (fem.elems, *element_data(fem, self.real))
         if d == 3 and self._lib is not None:
             self.q, self._elements = self._blocked()
-        if layout not in LAYOUTS:
-            raise ValueError(f"Body layout: {layout!r}, expected one of {', '.join(LAYOUTS)}")
-        self.layout = layout if (self._lib is not None and d == 3 and fem.elems.shape[1] == 10) else "scatter"
-        self._rows = self._element_rows() if self.layout == "rows" else {}
         self._step = self._bind() if self._lib is not None else None
 
     def _blocked(self):
         """q and (el, Bm, vol) in the blocks of SIMD lanes the compiled 3D step reads in place
         (kernels.c, forces_impl / p2_forces_blocked); el padded with vertex 0, q with the
-        identity (a quadratic tet's row holds its quadrature points' quaternions side by side)."""
+        identity (a quadratic tet's row holds its quadrature points' quaternions side by side).
+        Quadratic tets' el is blocked too, (nb, 10, B): their node offsets are read in SIMD gathers."""
         f, b = self.fem, self._lib.block_size()
         per = f.n_rotations // f.n_elems
         q = blocked(self.q.reshape(f.n_elems, 4 * per), b, pad=np.tile([1.0, 0.0, 0.0, 0.0], per))
         el = np.zeros((q.shape[0] * b, f.elems.shape[1]), np.int32)
         el[:f.n_elems] = f.elems
         _, Bm, vol = self._elements
+        if f.elems.shape[1] == 10:
+            el = blocked(el, b)
         return q, (el, blocked(Bm.reshape(f.n_elems, 9), b), blocked(vol, b))
-
-    def _element_rows(self) -> dict:
-        """The element-row layout's arrays (kernels.c's Step: hbuf, grp_ptr, ell_ptr, ell, gvert;
-        forces.h's vertex_forces reads them): each thread's vertices (the chunks advance gives
-        it) sorted by how many (element, node) pairs they have, in groups of G, and each group's
-        rows of offsets into hbuf, padded with a zero row's offset."""
-        f, b, g = self.fem, self._lib.block_size(), self._lib.group_size()
-        nodes, nv, nt = f.elems.shape[1], len(self.x), self.fbuf.shape[0]
-        nb = -(-f.n_elems // b)
-        el = self._elements[0]   # the kernel gathers node offsets lane by lane: el as (nb, nodes, B)
-        self._elements = (blocked(el, b).reshape(-1, nodes), *self._elements[1:])
-        zero = 4 * nodes * b * nb   # hbuf's zero node
-        if zero + 4 >= 2**31:
-            raise ValueError("Body: mesh too large for the element-row layout's int32 offsets")
-        e = np.repeat(np.arange(f.n_elems), nodes)
-        a = np.tile(np.arange(nodes), f.n_elems)
-        vert = f.elems.reshape(-1)
-        order = np.lexsort((e, vert))   # by vertex, in element order
-        offset = (4 * ((e // b * nodes + a) * b + e % b))[order]
-        count = np.bincount(vert, minlength=nv)
-        start = np.concatenate([[0], np.cumsum(count)])
-        chunk = -(-nv // nt)   # advance's vertex chunks
-        gvert = []
-        for t in range(nt):
-            v = np.arange(t * chunk, min(nv, (t + 1) * chunk))
-            v = v[np.argsort(count[v], kind="stable")]
-            pad = -len(v) % g
-            gvert.append(np.concatenate([v, np.full(pad, -1)]))
-        grp_ptr = np.concatenate([[0], np.cumsum([len(v) // g for v in gvert])])
-        gvert = np.concatenate(gvert).astype(np.int32)
-        member = gvert.reshape(-1, g)
-        K = np.where(member >= 0, count[np.maximum(member, 0)], 0).max(axis=1)
-        ell_ptr = np.concatenate([[0], np.cumsum(K * g)])
-        ell = np.full(ell_ptr[-1], zero, np.int64)
-        slot = np.flatnonzero(gvert >= 0)              # (group, lane) of each vertex
-        v = gvert[slot]
-        k = np.arange(count[v].sum()) - np.repeat(np.cumsum(count[v]) - count[v], count[v])
-        grp, lane = np.repeat(slot // g, count[v]), np.repeat(slot % g, count[v])
-        ell[ell_ptr[grp] + k * g + lane] = offset[np.repeat(start[v], count[v]) + k]
-        return {"hbuf": np.zeros(zero + 4, self.real), "grp_ptr": grp_ptr.astype(np.int64),
-                "ell_ptr": ell_ptr.astype(np.int64), "ell": ell.astype(np.int32), "gvert": gvert}
 
     def set_rotation(self, q) -> None:
         """Every element's warm-start rotation to the quaternion q (w, x, y, z)."""
@@ -354,10 +305,9 @@ class Body:
                       fext=self.fext, minv=self.minv, mass=self.mass, Bm=Bm, vol=vol,
                       boxes_min=self.boxes_min, boxes_max=self.boxes_max, weights=self.rotors[4],
                       thrust=self.thrust, gravity_share=self.gravity_share, el=el, face_ptr=self.rotors[0],
-                      faces=self.rotors[1], vert_ptr=self.rotors[2], verts=self.rotors[3], **self._rows)
+                      faces=self.rotors[1], vert_ptr=self.rotors[2], verts=self.rotors[3])
         want = {"el": np.int32, "face_ptr": np.int64, "faces": np.int64, "vert_ptr": np.int64, "verts": np.int64,
-                "q": self.real, "Bm": self.real, "vol": self.real, "hbuf": self.real, "grp_ptr": np.int64,
-                "ell_ptr": np.int64, "ell": np.int32, "gvert": np.int32}
+                "q": self.real, "Bm": self.real, "vol": self.real}
         for name, a in arrays.items():
             if not (a.flags.c_contiguous and a.dtype == want.get(name, np.float64)):
                 raise TypeError(f"Body.{name}: needs a C-contiguous {np.dtype(want.get(name, np.float64))} array")

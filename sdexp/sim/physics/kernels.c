@@ -18,7 +18,6 @@ static int omp_get_thread_num(void) { return 0; }
 #endif
 #define B 32  /* elements per SIMD block */
 #define VT 64 /* vertices per tile of the velocity update */
-#define G 8   /* vertices per group of the element-row layout's vertex pass (SIMD lanes) */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
 /* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
  * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
@@ -37,24 +36,7 @@ typedef struct {
     const double *boxes_min, *boxes_max, *weights, *thrust, *gravity_share;
     const int32_t *el;
     const int64_t *face_ptr, *faces, *vert_ptr, *verts;
-    /* the element-row layout (3D quadratic; NULL: the scatter layout): hbuf (nb, 10, B, 4) real,
-     * each element node's force (x, y, z, 0), then one zero node; el (nb, 10, B); the vertex
-     * pass's groups (forces.h, vertex_forces), those of thread t's vertices from grp_ptr[t] */
-    void *hbuf;
-    const int64_t *grp_ptr, *ell_ptr;
-    const int32_t *ell, *gvert;
 } Step;
-
-/* Four doubles, a 256-bit register where there is one (the element-row layout's vertex pass);
- * load4 / load4_f32 read four reals from any 8- / 4-byte aligned address, as doubles. */
-typedef double v4d __attribute__((vector_size(32)));
-typedef double v4d_u __attribute__((vector_size(32), aligned(8)));
-typedef float v4f_u __attribute__((vector_size(16), aligned(4)));
-static inline __attribute__((always_inline)) v4d load4(const double *p) { return *(const v4d_u *)p; }
-static inline __attribute__((always_inline)) v4d load4_f32(const float *p)
-{
-    return __builtin_convertvector(*(const v4f_u *)p, v4d);
-}
 
 /* The element force kernels, in double (sim.precision = float64) and in float (float32, names
  * ending _f32): one source, forces.h, included once per type. */
@@ -81,8 +63,6 @@ static inline __attribute__((always_inline)) v4d load4_f32(const float *p)
 /* The element block the 3D step reads its element data in (Body lays them out so). */
 int block_size(void) { return B; }
 
-/* The vertices per group of the element-row layout's vertex pass (Body lays them out so). */
-int group_size(void) { return G; }
 
 
 
@@ -184,13 +164,12 @@ static inline __attribute__((always_inline)) void contact(const Step *restrict s
     }
 }
 
-/* The summed forces (elastic, rotor, effects) on vertices [i0, i0 + n) into F: ext + fext and
- * the elastic forces of each thread's buffer fbuf[t] in turn (the element-row layout: fbuf[0]
- * alone, the vertex pass's sums). */
+/* The summed forces (elastic, rotor, effects) on vertices [i0, i0 + n) into F: ext + fext, then
+ * the elastic forces of each thread's buffer fbuf[t] in turn. */
 static inline __attribute__((always_inline)) void tile_forces(const Step *restrict s, const int d,
         int64_t i0, int n, double (*restrict F)[VT])
 {
-    const int64_t nv = s->nv, nt = s->ell ? 1 : s->nt;
+    const int64_t nv = s->nv, nt = s->nt;
     const double *restrict ext = s->ext, *restrict fext = s->fext, *restrict fb = s->fbuf;
     #pragma omp simd
     for (int j = 0; j < n; j++) {
@@ -199,11 +178,11 @@ static inline __attribute__((always_inline)) void tile_forces(const Step *restri
         F[2][j] = d == 3 ? ext[d * i + 2] + fext[d * i + 2] : 0.0;
     }
     for (int64_t k = 0; k < nt; k++) {
+        const double *restrict g = fb + d * (nv * k + i0);
         #pragma omp simd
         for (int j = 0; j < n; j++) {
-            const double *g = fb + d * (nv * k + i0 + j);
-            F[0][j] += g[0]; F[1][j] += g[1];
-            if (d == 3) F[2][j] += g[2];
+            F[0][j] += g[d * j]; F[1][j] += g[d * j + 1];
+            if (d == 3) F[2][j] += g[d * j + 2];
         }
     }
 }
@@ -334,7 +313,7 @@ int advance(const Step *s, double *vmax2)
         const int64_t vc = (nv + nt - 1) / nt, v0 = t * vc, v1 = v0 + vc < nv ? v0 + vc : nv;
         double *f = s->fbuf + d * nv * t, *my = sums + S_STRIDE * t;
         for (int64_t sub = 0; sub < s->n_sub; sub++) {
-            if (!s->ell) memset(f, 0, (size_t)(d * nv) * sizeof(double));
+            memset(f, 0, (size_t)(d * nv) * sizeof(double));
             inv[t] = e0 >= e1 ? 0 : step_forces(s, f, e0, e1);
             if (t == 0) rotor_forces(s);
             #pragma omp barrier
@@ -345,10 +324,6 @@ int advance(const Step *s, double *vmax2)
             }
             /* sums relative to a vertex, not the origin: far from it they would cancel */
             const double ref[3] = {s->x[0], s->x[1], d == 3 ? s->x[2] : 0.0};
-            if (s->ell) {   /* the element-row layout: this thread's vertices' elastic forces */
-                if (s->single) vertex_forces_f32(s, s->grp_ptr[t], s->grp_ptr[t + 1], s->fbuf);
-                else vertex_forces(s, s->grp_ptr[t], s->grp_ptr[t + 1], s->fbuf);
-            }
             if (d == 3) kick(s, 3, v0, v1, scale, ref, my);
             else kick(s, 2, v0, v1, scale, ref, my);
             #pragma omp barrier
@@ -378,12 +353,8 @@ int forces_only(const Step *s, int64_t reps)
 {
     int inverted = 0;
     for (int64_t r = 0; r < reps; r++) {
-        if (!s->ell) memset(s->fbuf, 0, (size_t)(s->dim * s->nv) * sizeof(double));
+        memset(s->fbuf, 0, (size_t)(s->dim * s->nv) * sizeof(double));
         inverted = step_forces(s, s->fbuf, 0, s->ne);
-        if (s->ell) {   /* the element-row layout: the vertex pass's sums */
-            if (s->single) vertex_forces_f32(s, 0, s->grp_ptr[s->nt], s->fbuf);
-            else vertex_forces(s, 0, s->grp_ptr[s->nt], s->fbuf);
-        }
     }
     return inverted;
 }

@@ -42,8 +42,7 @@ class Step(ctypes.Structure):
                                      "ground", "friction")]
                 + [(n, _P) for n in ("x", "v", "q", "fbuf", "ext", "dirs", "fext", "minv", "mass",
                                      "Bm", "vol", "boxes_min", "boxes_max", "weights", "thrust",
-                                     "gravity_share", "el", "face_ptr", "faces", "vert_ptr", "verts",
-                                     "hbuf", "grp_ptr", "ell_ptr", "ell", "gvert")])
+                                     "gravity_share", "el", "face_ptr", "faces", "vert_ptr", "verts")])
 
 
 def _cpu_id() -> str:
@@ -119,7 +118,6 @@ def library():
     lib.advance.restype = ctypes.c_int
     lib.advance.argtypes = [ctypes.POINTER(Step), ctypes.POINTER(ctypes.c_double)]
     lib.block_size.restype = ctypes.c_int
-    lib.group_size.restype = ctypes.c_int
     lib.forces_only.restype = ctypes.c_int
     lib.forces_only.argtypes = [ctypes.POINTER(Step), ctypes.c_int64]
     for name in ("fma_probe", "fma_probe_f32"):   # the benchmark's peak probe
