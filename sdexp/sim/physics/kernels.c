@@ -2,10 +2,11 @@
  * math; fem.corotated_range_3d/_2d are the same computation in numba) and whole control steps
  * of substeps (advance; integrator.advance is its numba reference and fallback).
  *
- * Elements are processed in blocks of B: a scalar gather of the edge vectors Ds into
- * structure-of-arrays buffers, one branch-free loop the compiler turns into SIMD (F = Ds Dm^-1
- * onwards), a scalar scatter of the forces. This layout is what lets gcc vectorise it; numba's
- * LLVM keeps the same arithmetic scalar.
+ * Elements are processed in blocks of B: a gather of the edge vectors Ds into
+ * structure-of-arrays buffers (scalar; quadratic tets: SIMD gathers from a blocked el), one
+ * branch-free loop the compiler turns into SIMD (F = Ds Dm^-1 onwards), a scalar scatter of the
+ * forces. This layout is what lets gcc vectorise it; numba's LLVM keeps the same arithmetic
+ * scalar. The per-vertex update (kick, drift) is SIMD over vertices too, except with contacts.
  * Threads are OpenMP's: a region costs a microsecond or two, a numba parallel region ten. */
 #include <math.h>
 #include <stdlib.h>
@@ -62,7 +63,6 @@ typedef struct {
 
 /* The element block the 3D step reads its element data in (Body lays them out so). */
 int block_size(void) { return B; }
-
 
 
 
