@@ -131,11 +131,12 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
     rotor's share of Tmax in the rest shape's minimum-norm hover thrust, the largest bend (deg)
     and the drop (m) after holding that thrust ``hold_seconds`` open loop, noise-free, the rank of
     the rotors' wrench on lift and tilt (3 in 3D, 2 in 2D: what hovering level needs) and in
-    all, the thrust patterns left to deform the body, and the nets' validation error (mean
+    all, the thrust patterns left to deform the body and the largest bend one of them holds while
+    the body stays level (``statics.deform_reach``), and the nets' validation error (mean
     absolute error of the predicted velocity change over that of copying the velocity: 1 = no
     better than "no change")."""
     from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
-    from sdexp.sim.rigid.statics import hold_state
+    from sdexp.sim.rigid.statics import deform_reach, hold_state
 
     fem, g, tmax = drone.fem, float(sim_cfg.gravity), float(drone.max_thrust)
     mass, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
@@ -150,7 +151,8 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
            "hover_drop_m": float(first.p[1] - st.p[1]),
            "hover_hold_blew_up": not sane,
            "lift_tilt_rank": int(np.linalg.matrix_rank(W[level])), "lift_tilt_needed": len(level),
-           "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1])}
+           "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1]),
+           "deform_reach_deg": deform_reach(drone, sim_cfg, hold_seconds)}
     if trained is not None:
         for name, h in trained.history.items():
             kept = h[h["selected"]] if "selected" in h and h["selected"].any() else h.tail(1)
@@ -308,7 +310,7 @@ def run(run: Run) -> dict:
             done = run_spawned(fly_job, todo, workers, bar.update)
     for res in done:
         results[(res["drone"], res["seed"])] = res
-    _fill_model_diagnostics(cfg, p, results)
+    _fill_diagnostics(cfg, p, results, jobs_dir)
     calls = _invocations(out_dir, time.perf_counter() - t0, len(done))
     ordered = [results[(n, s)] for n in names for s in p.seeds]
     for res in ordered:
@@ -344,15 +346,25 @@ def _invocations(out_dir: Path, wall: float, jobs_run: int) -> list[dict]:
     return calls
 
 
-def _fill_model_diagnostics(cfg, p: FleetParams, results: dict) -> None:
-    """Jobs written before ``model_at_hover`` (or its data fit) joined the physics (resumed runs)
-    get it from their cached data and nets; nothing is flown again."""
+def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> None:
+    """Jobs written before a diagnostic joined the physics (``model_at_hover`` and its data fit,
+    ``deform_reach_deg``; resumed runs) get it from their cached drone, data and nets, written back
+    to the job's file; nothing is flown again."""
     from sdexp.eval.flights import Setup
+    from sdexp.files import atomic_write
+    from sdexp.sim.rigid.statics import deform_reach
 
     for (name, seed), res in results.items():
-        if res["physics"] is None or "data_torque_map_ratio_acting" in res["physics"]:
+        phys = res["physics"]
+        if phys is None or ("data_torque_map_ratio_acting" in phys and "deform_reach_deg" in phys):
             continue
-        res["physics"].update(model_at_hover(Setup(job_config(cfg, name, seed, p), progress=False)))
+        setup = Setup(job_config(cfg, name, seed, p), progress=False)
+        if "data_torque_map_ratio_acting" not in phys:
+            phys.update(model_at_hover(setup))
+        if "deform_reach_deg" not in phys:
+            phys["deform_reach_deg"] = deform_reach(setup.drone, setup.cfg.sim)
+        text = json.dumps(res, indent=1, default=float)
+        atomic_write(jobs_dir / f"{name}_seed{seed}.json", lambda tmp: tmp.write_text(text))
 
 
 def fleet_table(results: list[dict]) -> pd.DataFrame:

@@ -43,7 +43,12 @@ def test_an_interrupted_fleet_resumes_with_the_jobs_it_has(tmp_path, cache_dir):
     before = pd.read_csv(tmp_path / "fleet.csv")
     (tmp_path / "metrics.json").unlink()                 # as if killed before the end ...
     (tmp_path / "jobs" / "engine_seed0.json").unlink()   # ... with the engine's job unfinished
+    rod = tmp_path / "jobs" / "rod_seed0.json"           # and the rod's written before deform_reach_deg
+    job = json.loads(rod.read_text())
+    reach = job["physics"].pop("deform_reach_deg")
+    rod.write_text(json.dumps(job))
     again = run_experiment(reduced(cache_dir), tmp_path)
+    assert json.loads(rod.read_text())["physics"]["deform_reach_deg"] == pytest.approx(reach)   # filled, kept
     assert first["jobs_run"] == 2 and again["jobs_run"] == 1
     assert again["invocations"] == 2 and again["wall_seconds"] > first["wall_seconds"]   # both calls' wall time
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "fleet.csv"), before)   # flights repeat bit for bit
@@ -121,6 +126,8 @@ def test_physics_of_a_body_its_thrust_to_weight_and_a_fold_inverse_in_the_modulu
     assert soft["lift_tilt_rank"] == soft["lift_tilt_needed"] == 2
     assert 0 < soft["hover_fold_deg"] < 1
     assert stiff["hover_fold_deg"] == pytest.approx(soft["hover_fold_deg"] / 2, rel=0.15)
+    assert 0 < soft["deform_reach_deg"] < 15      # the deform task's 15 deg is out of the engine's reach
+    assert stiff["deform_reach_deg"] == pytest.approx(soft["deform_reach_deg"] / 2, rel=0.15)
 
 
 @pytest.mark.parametrize("override, words", [

@@ -5,7 +5,7 @@ from hydra import compose, initialize_config_module
 from sdexp.eval.experiments import typed
 from sdexp.sim.drone import build_drone
 from sdexp.sim.rigid.geometry import rest_hover_thrust, rigid_body, wrench_matrix
-from sdexp.sim.rigid.statics import hold, shape_hover_thrust
+from sdexp.sim.rigid.statics import deform_reach, hold, shape_hover_thrust
 
 
 def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):
@@ -29,3 +29,17 @@ def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):
     bent_shape = np.abs(hold(drone, cfg.sim, shape, 2.0)).max()
     assert bent_rigid > np.deg2rad(30)
     assert bent_shape < 0.3 * bent_rigid
+
+
+def test_how_far_the_rotors_can_bend_a_body_that_stays_level(cache_dir):
+    """deform_reach: the fleet's deform task asks 15 deg. The 8 m rod (its ends fold under its own
+    hover thrust) bends past it; the engine (steel-stiff next to it) bends a few degrees at most,
+    the physics behind a failed deform task; the rainbow's two rotors leave no pattern at all (lift
+    and tilt take both), so nothing bends it while it stays level."""
+    def drone(name):
+        with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
+            cfg = typed(compose(config_name="config", overrides=[f"drone={name}", f"cache_dir={cache_dir}"]))
+        return build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), cfg.sim
+    assert deform_reach(*drone("rod")) > 90.0
+    assert 0.1 < deform_reach(*drone("engine")) < 5.0
+    assert deform_reach(*drone("rainbow")) == 0.0

@@ -57,12 +57,33 @@ def held_bend(drone, sim_cfg, rotors: np.ndarray, amplitude: float | None = None
     pattern = null @ (null.T @ rotors.astype(float))
     if not np.abs(pattern).max() > 1e-9:
         raise ValueError(f"drone {drone.name}: those rotors cannot push without a net lift or tilting torque")
-    pattern /= np.abs(pattern).max()
+    return np.rad2deg(hold(drone, sim_cfg, _pattern_thrust(drone, sim_cfg, pattern, amplitude), seconds))
+
+
+def _pattern_thrust(drone, sim_cfg, pattern: np.ndarray, amplitude: float | None = None) -> np.ndarray:
+    """Hover thrust of the rest shape plus ``pattern`` scaled to a largest rotor offset of
+    ``amplitude`` (N; None: as large as +-Tmax allows on top of hover)."""
+    pattern = pattern / np.abs(pattern).max()
     hover, tmax = rest_hover_thrust(drone, float(sim_cfg.gravity)), drone.max_thrust
     if amplitude is None:
         room = np.where(pattern > 0, tmax - hover, -tmax - hover) / np.where(pattern == 0, np.inf, pattern)
         amplitude = room[pattern != 0].min()
-    return np.rad2deg(hold(drone, sim_cfg, hover + amplitude * pattern, seconds))
+    return hover + amplitude * pattern
+
+
+def deform_reach(drone, sim_cfg, seconds: float = 2.0) -> float:
+    """The largest bend (deg, any peripheral sensor) that one deformation pattern (a basis vector
+    of ``deformation_patterns``, either sign) holds after ``seconds`` open loop, noise-free, at the
+    largest amplitude +-Tmax leaves on top of the rest shape's hover thrust: how far the rotors
+    can bend the body at all while it stays level (0: no pattern, or no sensor)."""
+    if drone.layout.n_s == 0:
+        return 0.0
+    best = 0.0
+    for pattern in deformation_patterns(drone).T:
+        for sign in (1.0, -1.0):
+            best = max(best, float(np.abs(hold(drone, sim_cfg, _pattern_thrust(drone, sim_cfg, sign * pattern),
+                                               seconds)).max()))
+    return float(np.rad2deg(best))
 
 
 def shape_hover_thrust(drone, sim_cfg, seconds: float = 2.0, iterations: int = 3, step: float = 0.1) -> np.ndarray:
