@@ -295,11 +295,12 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
              "median error of those (hover, reach: final position error; velocity: velocity error rms; deform: bend "
              "rms), and the rigid LQR's survivors. **Bold**: flies (every seed survives, median within the task's "
              "tolerance). Physics of each body, apart from any controller: thrust-to-weight, the fold the rigid hover "
-             "thrust holds open loop (2 s); the learned model: the nets' validation error against copying the velocity "
+             "thrust holds open loop (2 s), the largest bend one thrust pattern without net lift or tilt holds (its reach: "
+             "the deform task asks 15 deg); the learned model: the nets' validation error against copying the velocity "
              "(d / g / h), and at release under hover thrust, where the truth is no acceleration, the linear "
              "acceleration it predicts (m/s^2, mean over seeds).\n",
-             "| drone | " + " | ".join(tasks) + " | thrust/weight | hover fold (deg) | nets' error d / g / h | model's accel. at hover |",
-             "| --- | " + " | ".join("---" for _ in tasks) + " | --- | --- | --- | --- |"]
+             "| drone | " + " | ".join(tasks) + " | thrust/weight | hover fold (deg) | bend reach (deg) | nets' error d / g / h | model's accel. at hover |",
+             "| --- | " + " | ".join("---" for _ in tasks) + " | --- | --- | --- | --- | --- |"]
     for drone in drones:
         row = []
         for task in tasks:
@@ -315,8 +316,8 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
                 text += f" (rigid {int(rigid['survived'].astype(bool).sum())}/{seeds})"
             row.append(text)
         ph = physics.loc[drone] if drone in physics.index else None
-        phys = ["-"] * 4 if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]) else [
-            f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}",
+        phys = ["-"] * 5 if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]) else [
+            f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}", f"{ph.get('deform_reach_deg', float('nan')):.1f}",
             " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh"),
             f"{ph.get('model_accel_at_hover', float('nan')):.1f}"]
         lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(phys) + " |")
@@ -328,7 +329,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     verdict = REPRODUCED if n_fly == len(flies) else PARTLY if n_fly > len(flies) / 2 else NOT
     return lines, [(claim, f"{len(drones)} designs, four tasks",
                     f"{n_fly} of {len(flies)} drone-task pairs fly (of {len(drones)} drones: {per_task}); "
-                    f"{all_tasks} drones fly all four", verdict,
+                    f"{all_tasks} drone{'s' * (all_tasks != 1)} fl{'y' if all_tasks != 1 else 'ies'} all four", verdict,
                     "reproduced: every drone flies every task; partly: most drone-task pairs fly")]
 
 
