@@ -178,3 +178,11 @@ def test_bench_sim_reports_a_blow_up_in_its_table(cache_dir):
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     row = time_drone(drone, cfg.drone, cfg, seconds=0.25, seed=0)
     assert row["blowups"] > 0 and "runaway_speed" in row["blowup_detail"]
+
+
+@pytest.mark.parametrize("drone", [*DRONES, "tripod"])
+def test_a_drone_read_by_name_is_the_drone_hydra_composes(drone):
+    """conf.drone (what the fleet and the other multi-drone experiments read) applies a drone
+    file's defaults list as Hydra does: the tripod builds on custom.yaml."""
+    from sdexp import conf
+    assert conf.drone(drone) == make_config(f"drone={drone}").drone

@@ -41,9 +41,24 @@ def paper_drones() -> list[str]:
 
 
 def drone(name: str):
-    """conf/drone/<name>.yaml as a DroneConfig (the experiments that run several drones)."""
+    """conf/drone/<name>.yaml as a DroneConfig (the experiments that run several drones), its
+    defaults list applied as Hydra would (tripod.yaml builds on custom.yaml) and read under the key
+    ``drone``, where its interpolations (``${sdexp.count:drone.rotors}``) look."""
     from sdexp.config import DroneConfig
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DroneConfig), read("drone", name)))
+    root = OmegaConf.create({"drone": OmegaConf.merge(OmegaConf.structured(DroneConfig), *_layers("drone", name))})
+    return OmegaConf.to_object(root.drone)
+
+
+def _layers(group: str, name: str) -> list[DictConfig]:
+    """The files a group option composes, in merge order: its defaults list (options of the same
+    group, each with its own), ``_self_`` where listed, else last (Hydra's rule)."""
+    own = read(group, name)
+    if own is None:
+        raise FileNotFoundError(f"no config {group}/{name}.yaml")
+    entries = list(own.pop("defaults", None) or [])
+    if "_self_" not in entries:
+        entries.append("_self_")
+    return [layer for e in entries for layer in ([own] if e == "_self_" else _layers(group, str(e)))]
 
 
 def read(*parts: str) -> DictConfig | None:
