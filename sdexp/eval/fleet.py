@@ -68,8 +68,14 @@ def samples_for(p: FleetParams, n_s: int, dim: int, samples: int) -> int:
     return int(-(-n // 100) * 100)
 
 
-def body_length(drone_cfg) -> float:
-    return float(max(drone_cfg.size))
+def body_length(setup) -> float:
+    """The drone's largest dimension (m): the design's bounding lengths (drone.size), or for a
+    drone from a mesh file (no size given) its rest shape's bounding box."""
+    size = list(setup.cfg.drone.size)
+    if size:
+        return float(max(size))
+    rest = setup.drone.fem.rest
+    return float((rest.max(axis=0) - rest.min(axis=0)).max())
 
 
 def deform_schedule(n_s: int, p: FleetParams) -> tuple[list, list, float]:
@@ -95,7 +101,7 @@ def tasks_for(setup, p: FleetParams) -> dict:
         if name == "hover":
             out[name] = (setup.task(start, start, float(p.hover_seconds)), 0.0)
         elif name == "reach":
-            trip = float(p.reach_lengths) * body_length(setup.cfg.drone)
+            trip = float(p.reach_lengths) * body_length(setup)
             out[name] = (setup.task(start, np.full(dim, trip / np.sqrt(dim)), float(p.reach_seconds)), 0.0)
         elif name == "velocity":
             v = np.zeros(dim)
@@ -243,7 +249,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained), **model_at_hover(setup)}
         result["seconds"]["physics"] = time.perf_counter() - t1
         t1 = time.perf_counter()
-        trip = float(p.reach_lengths) * body_length(job_cfg.drone)
+        trip = float(p.reach_lengths) * body_length(setup)
         for task_name, (task, since) in tasks_for(setup, p).items():
             for ctl_name in p.controllers:
                 phase = f"{task_name} under {ctl_name}"
@@ -328,7 +334,7 @@ def run(run: Run) -> dict:
     out = {"wall_seconds": float(sum(c["wall_seconds"] for c in calls)), "invocations": len(calls),
            "job_seconds": float(sum(r["seconds"].get("total", 0.0) for r in ordered)),
            "jobs": len(ordered), "jobs_run": len(done), "jobs_failed": sum(bool(r["error"]) for r in ordered)}
-    for (drone, task, ctl), grp in table.groupby(["drone", "task", "controller"]):
+    for (drone, task, ctl), grp in table[table["task"] != "-"].groupby(["drone", "task", "controller"]):   # flown rows
         out[f"{drone}_{task}_{ctl}_survived"] = int(grp["survived"].sum())
         out[f"{drone}_{task}_{ctl}_{grp['primary'].iloc[0]}_median"] = float(grp["primary_value"].median())
     return out
@@ -367,6 +373,11 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
         atomic_write(jobs_dir / f"{name}_seed{seed}.json", lambda tmp: tmp.write_text(text))
 
 
+FLIGHT_COLUMNS = ("drone", "seed", "task", "controller", "survived", "survival_time", "failure", "seconds",
+                  "final_error", "velocity_error_rms", "bend_rms_deg", "max_position_deviation", "max_tilt_deg",
+                  "thrust_usage", "primary", "primary_value", "tolerance", "samples")
+
+
 def fleet_table(results: list[dict]) -> pd.DataFrame:
     """One row per drone, seed, task and controller; a job that did not fly is one row with its
     reason (task and controller '-')."""
@@ -377,7 +388,8 @@ def fleet_table(results: list[dict]) -> pd.DataFrame:
                          "survived": False, "failure": f"job: {res['error']}", "samples": res["samples"]})
         for row in res["rows"]:
             rows.append({**row, "samples": res["samples"]})
-    return pd.DataFrame(rows)
+    # every column a flight row has, also when no job flew (then all rows are failed jobs')
+    return pd.DataFrame(rows).reindex(columns=list(dict.fromkeys([*FLIGHT_COLUMNS, *(k for r in rows for k in r)])))
 
 
 def physics_table(results: list[dict]) -> pd.DataFrame:

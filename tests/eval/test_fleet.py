@@ -72,6 +72,29 @@ def test_a_drone_that_cannot_learn_is_a_recorded_row_and_the_fleet_goes_on(tmp_p
     assert (tmp_path / "fleet.png").exists()
 
 
+def test_a_fleet_where_no_drone_flies_is_still_a_table_of_reasons(tmp_path, cache_dir, monkeypatch):
+    from sdexp.eval import flights
+
+    def setup(cfg, progress=True):
+        raise RuntimeError(f"the {cfg.drone.name}'s data blew up")
+    monkeypatch.setattr(flights, "Setup", setup)
+    m = run_experiment(reduced(cache_dir), tmp_path)
+    table = pd.read_csv(tmp_path / "fleet.csv")
+    assert list(table["drone"]) == ["rod", "engine"] and not table["survived"].any()
+    assert {"primary", "primary_value", "tolerance"} <= set(table) and m["jobs_failed"] == 2
+    assert (tmp_path / "fleet.png").exists()
+
+
+def test_the_reach_trip_of_a_drone_from_a_mesh_file_is_its_rest_shape_long():
+    """A paper drone's body length is its design's (drone.size); a drone of one's own has none
+    given, so its rest shape's bounding box sets the trip."""
+    from types import SimpleNamespace as NS
+    rest = np.array([[0.0, 0.0, 0.0], [2.4, 0.2, -0.5], [1.0, 0.1, 2.0]])
+    own = NS(cfg=NS(drone=NS(size=[])), drone=NS(fem=NS(rest=rest)))
+    assert fleet.body_length(own) == pytest.approx(2.5)
+    assert fleet.body_length(NS(cfg=NS(drone=NS(size=[3.6, 0.225, 3.6])), drone=None)) == 3.6
+
+
 def test_the_data_rule_scales_with_the_state_channels():
     p = FleetParams()
     # flower: 8 bends + 3 angles + 3 positions; rod (2D): 8 + 1 + 2
