@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import pytest
-from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
 from sdexp import conf
@@ -17,11 +16,7 @@ from sdexp.config import validate
 from sdexp.errors import EXIT_USER_ERROR, UserError
 from sdexp.eval.experiments import check_groups, typed
 from sdexp.experiment_params import PARAMS, names
-
-
-def make_cfg(*overrides):
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
+from tests.conftest import make_cfg
 
 
 def rejected(*overrides) -> str:
