@@ -277,7 +277,7 @@ class DiscrepancyParams(Params):
 @dataclass
 class DiscrepancyBenchParams(Params):
     effects: Optional[List[str]] = None    # null = the whole library
-    levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (sdexp.discrepancy.bench.STRENGTHS)
+    levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (each effect's bench_strengths)
     seeds: int = nonnegative(2)            # per effect and strength
     nulls: int = nonnegative(20)
     combos: bool = True
