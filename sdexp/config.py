@@ -282,7 +282,7 @@ class FlightConfig:
 
 @dataclass
 class ExperimentConfig:
-    _target_: str = MISSING   # the runner, run(run: sdexp.eval.run.Run) -> metrics
+    _target_: str = MISSING   # the runner, run(run: sdexp.run.Run) -> metrics
     name: str = MISSING
     params: Any = None        # the experiment's own dataclass (sdexp.experiment_params), placed by its YAML
 

@@ -2,13 +2,14 @@
 and allowed ranges. Each conf/experiment/<name>.yaml places its dataclass at experiment.params
 (``- /experiment_params@experiment.params: <name>`` in its defaults list), so Hydra composes the
 defaults into the config, refuses a key the dataclass lacks or a value of the wrong type, and
-``OmegaConf.to_object`` at the runner boundary (sdexp.eval.run) hands the runner an instance,
+``OmegaConf.to_object`` at the runner boundary (sdexp.eval.experiments.typed) hands the runner an instance,
 whose ``__post_init__`` checks the ranges.
 
 A field's ``metadata`` says what is allowed beyond its type: ``range`` (a predicate and its
-text, applied to every number of a list or mapping) and ``group`` (every value must name an
-option of that config group, e.g. a drone: checked where the configs are known,
-sdexp.eval.run).
+text, applied to every number of a list or mapping) and ``names`` (every value must name one
+of those: an option of that config group, a drone or an experiment, or with "controller" a
+registered controller; checked where the configs and the registry are known, before the
+conversion: sdexp.eval.experiments.check_names).
 """
 from __future__ import annotations
 
@@ -45,7 +46,12 @@ def nonnegative(default):
 
 def drone_choice(default):
     """A drone name, or a list of them (null: every drone, where the runner says so)."""
-    return _param(default, group="drone")
+    return _param(default, names="drone")
+
+
+def controller_choice(default):
+    """A list of controller names (sdexp.eval.controllers.CONTROLLERS)."""
+    return _param(default, names="controller")
 
 
 def _leaves(value) -> list:
@@ -83,8 +89,8 @@ class SotaParams(Params):
     seconds: float = positive(20.0)
     start: List[float] = _param([0.0, 0.0, 0.0])
     target: List[float] = _param([3.0, 3.0, 3.0])
-    controllers: List[str] = _param(["ours", "rigid_lqr", "geometry_lqr", "neural"])
-    animate: List[str] = _param(["ours"])   # controllers whose flight is also drawn: sota_<name>.mp4 ([]: none)
+    controllers: List[str] = controller_choice(["ours", "rigid_lqr", "geometry_lqr", "neural"])
+    animate: List[str] = controller_choice(["ours"])   # controllers whose flight is also drawn: sota_<name>.mp4 ([]: none)
     paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
 
     def check(self) -> None:
@@ -141,7 +147,7 @@ class FleetParams(Params):
     """sdexp.eval.fleet: every drone of ``drones`` learned and flown through ``tasks``."""
     drones: Optional[List[str]] = drone_choice(None)   # null = all twelve
     tasks: List[str] = _param(list(FLEET_TASKS))
-    controllers: List[str] = _param(["ours", "rigid_lqr"])
+    controllers: List[str] = controller_choice(["ours", "rigid_lqr"])
     seeds: List[int] = _param([0, 1, 2], lambda v: v >= 0, ">= 0")   # each its own data, nets and noise
     # the data rule: samples = samples_per_channel x the drone's state channels (n_s + n_e + dim:
     # bends, attitude, position; each comes with its rate), at least min_samples (docs/results.md
@@ -250,7 +256,7 @@ class GalleryParams(Params):
 
 @dataclass
 class BenchSweepParams(Params):
-    experiment: str = _param("ablation_fixed_point", group="experiment")   # the swept experiment: the rod's cold run is about a minute
+    experiment: str = _param("ablation_fixed_point", names="experiment")   # the swept experiment: the rod's cold run is about a minute
     seeds: int = nonnegative(5)
     jobs: List[int] = _param([1, 2], lambda v: v > 0, "> 0")   # jobs side by side; the first is the baseline of the speed-up
     overrides: List[str] = _param([])   # extra overrides for every job, e.g. ["drone=rod"]
@@ -271,7 +277,7 @@ class DiscrepancyParams(Params):
 @dataclass
 class DiscrepancyBenchParams(Params):
     effects: Optional[List[str]] = None    # null = the whole library
-    levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (sdexp.discrepancy.bench.STRENGTHS)
+    levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (each effect's bench_strengths)
     seeds: int = nonnegative(2)            # per effect and strength
     nulls: int = nonnegative(20)
     combos: bool = True

@@ -8,20 +8,15 @@ import subprocess
 import sys
 
 import pytest
-from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
 from sdexp import conf
 from sdexp.cli import describe
 from sdexp.config import validate
 from sdexp.errors import EXIT_USER_ERROR, UserError
-from sdexp.eval.experiments import check_groups, typed
+from sdexp.eval.experiments import check_names, typed
 from sdexp.experiment_params import PARAMS, names
-
-
-def make_cfg(*overrides):
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
+from tests.conftest import make_cfg
 
 
 def rejected(*overrides) -> str:
@@ -33,7 +28,8 @@ def rejected(*overrides) -> str:
         return describe(err, list(overrides))
     with pytest.raises(UserError) as info:
         validate(cfg)
-        check_groups(typed(cfg).experiment.params)
+        check_names(cfg)
+        typed(cfg)
     return str(info.value)
 
 
@@ -117,6 +113,15 @@ def rejected(*overrides) -> str:
     ("experiment=validate_fem +experiment.params.beam.lenght=2", "experiment.params.beam.lenght", "length"),
     ("experiment=hover_deform experiment.params.ramp_seconds=inf", "experiment.params.ramp_seconds", "finite"),
     ("experiment.params.animate=[ours,nope]", "experiment.params.animate", "ours, rigid_lqr, geometry_lqr, neural"),
+    ("experiment.params.animate=[rigid_lqr] experiment.params.controllers=[ours]", "experiment.params.animate",
+     "'rigid_lqr' is not flown"),
+    # a misspelled controller is named as itself, with the registry's names, before any data or training
+    ("experiment.params.controllers=[our,rigid_lqr]", "controller 'our' is unknown",
+     "choose from ours, rigid_lqr, geometry_lqr, neural"),
+    ("experiment=fleet experiment.params.controllers=[ours,rigid]", "experiment.params.controllers",
+     "choose from ours, rigid_lqr, geometry_lqr, neural"),
+    ("experiment=fleet experiment.params.controllers=[neural]", "experiment.params.controllers",
+     "allowed a non-empty list of ours, rigid_lqr, geometry_lqr"),
     ("experiment.params.animate=true", "experiment.params.animate", "not a ListConfig, list or tuple"),
     ("experiment=obstacle experiment.params.animate=[ours]", "experiment.params.animate", "not a valid bool"),
 ])
@@ -129,7 +134,8 @@ def test_bad_config_values_name_the_key_and_the_allowed_values(override, key, al
 def test_every_experiment_declares_its_params(experiment):
     cfg = make_cfg(f"experiment={experiment}")
     validate(cfg)
-    check_groups(typed(cfg).experiment.params)   # its own defaults pass its own checks
+    check_names(cfg)
+    typed(cfg)   # its own defaults pass its own checks
     assert list(cfg.experiment.params) == [f.name for f in __import__("dataclasses").fields(PARAMS[experiment])]
     assert sorted(cfg.experiment.params) == names(PARAMS[experiment])
 
@@ -164,6 +170,13 @@ def test_hydra_config_errors_are_one_line_with_the_user_error_code(tmp_path, arg
 
 def test_a_bad_value_exits_2_in_one_line_and_leaves_no_run_folder(tmp_path):
     assert_one_line_error(sdexp("drone.mass=inf", cwd=tmp_path), "drone.mass", "> 0 kg")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_misspelled_controller_stops_the_run_before_its_data(tmp_path):
+    """sota generates data and trains its nets before the first flight: the names come first."""
+    res = sdexp("experiment.params.controllers=[ours,rigid_lqx]", f"cache_dir={tmp_path / 'cache'}", cwd=tmp_path)
+    assert_one_line_error(res, "experiment.params.controllers", "'rigid_lqx'", "ours, rigid_lqr, geometry_lqr, neural")
     assert list(tmp_path.iterdir()) == []
 
 

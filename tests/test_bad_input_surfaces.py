@@ -150,9 +150,8 @@ def test_the_report_command_on_a_sweep_with_an_unfinished_job_is_one_line(tmp_pa
 # ------------------------------------------------------------------ sweep launchers
 
 def _launcher(*overrides):
-    from hydra import compose, initialize_config_module
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides), return_hydra_config=True).hydra.launcher
+    from tests.conftest import make_cfg
+    return make_cfg(*overrides, hydra=True).hydra.launcher
 
 
 @pytest.mark.parametrize("overrides, words", [
@@ -221,7 +220,7 @@ def fill_the_disk(run):
 
 
 def _cfg(*overrides):
-    from tests.test_bad_input import make_cfg
+    from tests.conftest import make_cfg
     return make_cfg("experiment=gallery", "experiment.params.drones=[rod]", *overrides)
 
 
@@ -572,7 +571,7 @@ def test_the_workflow_names_nothing_from_too_few_flights(tmp_path, cache_dir):
     from sdexp.sim.drone import build_drone
     from tests.discrepancy.conftest import SMALL
     from tests.discrepancy.test_workflow import record
-    from tests.test_cli import make_config
+    from tests.conftest import make_config
     cfg = make_config(*SMALL, "experiment=discrepancy", f"cache_dir={cache_dir}")
     d = cfg.discrepancy
     cfg = replace(cfg, discrepancy=replace(d, candidates=["payload", "stiffness_scale"], floor_flights=2,

@@ -2,27 +2,20 @@
 the keys only away from its default (sdexp.cache.KEY_UNLESS_DEFAULT), so every cache built before
 it stays valid. A key moved here means every user's data and nets are rebuilt (hours for the
 fleet): change the stored keys only with a deliberate format change, and say so."""
-from hydra import compose, initialize_config_module
-
 from sdexp.cache import config_key
 from sdexp.config import DroneConfig, MeshConfig
-from sdexp.eval.experiments import typed
 from sdexp.model.dataset import dataset_key, dataset_spec
+from tests.conftest import make_config
 
 # the keys the committed results' caches were built with (SOTA flower: results/sota; the fleet's donut, seed 0)
 STORED = {("experiment=sota", "drone=flower"): "data-f4675ce7bd21f46c"}
 
 
-def _cfg(*overrides):
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return typed(compose(config_name="config", overrides=list(overrides)))
-
-
 def test_the_committed_runs_data_keys_are_the_ones_their_caches_were_built_with():
     from sdexp.eval.fleet import job_config
     for overrides, key in STORED.items():
-        assert dataset_key(dataset_spec(_cfg(*overrides))) == key, overrides
-    fleet = _cfg("experiment=fleet")
+        assert dataset_key(dataset_spec(make_config(*overrides))) == key, overrides
+    fleet = make_config("experiment=fleet")
     assert dataset_key(dataset_spec(job_config(fleet, "donut", 0, fleet.experiment.params))) == "data-dbf1f9356e0f3449"
 
 

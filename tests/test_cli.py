@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError
 
@@ -16,22 +15,12 @@ from sdexp.errors import UserError
 from sdexp import conf
 from sdexp.eval.experiments import run_experiment, typed
 from sdexp.sim.drone import drone_names
+from tests.conftest import make_cfg, make_config
 
 EXPERIMENTS = conf.names("experiment")
 
 DRONES = ["bunny", "diamond", "donut", "elephant", "engine", "flower", "leaf", "octopus",
           "orange_peel", "rainbow", "rod", "star"]
-
-
-def make_cfg(*overrides):
-    """The composed config, as the cli hands it to run_experiment."""
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
-
-
-def make_config(*overrides):
-    """The typed config (sdexp.config.Config), as a runner and everything below it sees it."""
-    return typed(make_cfg(*overrides))
 
 
 def test_the_twelve_paper_drones_are_configured():

@@ -7,30 +7,24 @@ import subprocess
 import sys
 
 import pytest
-from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from sdexp.eval.experiments import typed
 from sdexp.parallel import available_cores, concurrent_jobs, fit_to_cores, job_cores
+from tests.conftest import make_cfg, make_config
 
 TINY = ["experiment=gallery", "experiment.params.drones=[rod]"]   # a mesh and a plot: seconds
 
 
-def make_cfg(*overrides, hydra=False):
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides), return_hydra_config=hydra)
-
-
 def test_fit_to_cores_caps_threads_and_workers_without_touching_the_config():
-    cfg = typed(make_cfg("experiment=discrepancy_bench", "sim.threads=0", "data.workers=2", "model.threads=2"))
+    cfg = make_config("experiment=discrepancy_bench", "sim.threads=0", "data.workers=2", "model.threads=2")
     one, changed = fit_to_cores(cfg, 1)
     assert (one.sim.threads, one.data.workers, one.model.threads, one.experiment.params.workers) == (1, 1, 1, 1)
     assert "data.workers 2 -> 1" in changed and "sim.threads 0 -> 1" in changed
     assert (cfg.sim.threads, cfg.data.workers, cfg.model.threads) == (0, 2, 2)   # a copy: the saved config stays
     two, changed = fit_to_cores(cfg, 2)
     assert (two.sim.threads, two.data.workers, two.model.threads) == (0, 2, 2) and changed == []
-    big, _ = fit_to_cores(typed(make_cfg("sim.threads=8")), 4)
+    big, _ = fit_to_cores(make_config("sim.threads=8"), 4)
     assert big.sim.threads == 4
 
 

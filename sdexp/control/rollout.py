@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from sdexp.control.controller import Controller
 from sdexp.control.lqr import LqrFailure
 from sdexp.config import FlightConfig
 from sdexp.control.tasks import Task, wrap_angle
@@ -139,7 +140,7 @@ class FrameRecorder:
         return 1.0 / (self.every * self.dt) if self.dt else self.fps
 
 
-def fly(sim: Simulator, controller, task: Task, on_step=None, limits=None, recorder=None) -> Flight:
+def fly(sim: Simulator, controller: Controller, task: Task, on_step=None, limits=None, recorder=None) -> Flight:
     """``limits``: the loss-of-control limits (a ``FlightConfig`` or the ``flight`` config node);
     None = the schema's defaults. ``recorder``: a ``FrameRecorder`` to fill (None: nothing kept)."""
     # the controllers' matrices are tiny (28 x 28 at most): BLAS threads only add hand-offs and
@@ -148,7 +149,7 @@ def fly(sim: Simulator, controller, task: Task, on_step=None, limits=None, recor
         return _fly(sim, controller, task, on_step, LossOfControl(task, limits), recorder)
 
 
-def _fly(sim: Simulator, controller, task: Task, on_step, lost: LossOfControl, recorder=None) -> Flight:
+def _fly(sim: Simulator, controller: Controller, task: Task, on_step, lost: LossOfControl, recorder=None) -> Flight:
     sim.reset()
     # release the drone where its *measured* position (the mean of its IMUs) is task.start
     readings = sim.reset(position=task.start - sim.state(noisy=False).p)

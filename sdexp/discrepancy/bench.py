@@ -21,31 +21,18 @@ import yaml
 from sdexp.cache import atomic_write
 from sdexp.discrepancy import bench_effects
 from sdexp.run import Run
+from sdexp.sim.physics.effects import LIBRARY
 
 log = logging.getLogger(__name__)
 
-
-# (moderate, strong) strength of each library effect; direction-like parts drawn per seed
-STRENGTHS = {
-    "rotor_reaction_torque": ("k", 0.15, 0.3),
-    "rotor_drag": ("k", 0.6, 1.5),
-    "quadratic_drag": ("c", 0.3, 0.7),     # rho C_d / 2 of a flat plate is ~0.7
-    "ground_effect": ("radius", 1.0, 1.6),
-    "motor_lag": ("tau", 0.06, 0.12),
-    "actuation_delay": ("delay", 0.02, 0.05),
-    "wind": ("velocity", 1.5, 3.0),
-    "thrust_loss": ("fraction", 0.15, 0.3),
-    "payload": ("mass", 0.1, 0.25),
-    "stiffness_scale": ("scale", 0.6, 1.8),
-    "damping_scale": ("scale", 0.5, 2.0),
-    "imu_bias": ("value", 0.02, 0.05),
-}
 
 COMBOS = [("rotor_drag", "motor_lag"), ("payload", "imu_bias"), ("wind", "ground_effect")]
 
 
 def effect_entry(name: str, level: int, rng, drone) -> dict:
-    key, *values = STRENGTHS[name]
+    """The library effect ``name`` at its moderate (level 0) or strong (1) bench strength, its
+    effect's ``bench_strengths``; direction-like parts drawn from ``rng``."""
+    key, *values = LIBRARY[name].bench_strengths
     v = values[level]
     dim = drone.dim
     if name == "wind":
@@ -181,7 +168,7 @@ def param_error(sc: dict, rep: dict) -> dict:
     fitted = next((e for e in rep["effects"] if e["name"] == truth["name"]), None)
     if fitted is None:
         return {"param_error": None}
-    key = STRENGTHS[truth["name"]][0]
+    key = LIBRARY[truth["name"]].bench_strengths[0]
     p = fitted["params"]
     if truth["name"] in ("wind", "imu_bias"):
         t, f = np.asarray(truth[key], float), np.asarray(p[key], float)
@@ -295,7 +282,6 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     from sdexp.discrepancy.workflow import prepare
     from sdexp.parallel import run_spawned
     from sdexp.sim.drone import build_drone
-    from sdexp.sim.physics.effects import LIBRARY
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)

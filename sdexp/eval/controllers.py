@@ -1,4 +1,5 @@
-"""Building the four controllers of the paper from a config, a simulator and the learned model.
+"""The controllers by name (``CONTROLLERS``), each built from a config, a simulator and the learned
+model: the paper's four, and where a new one is registered.
 
 The rigid baselines get their privileged geometry here, from the simulator's mesh: the rest
 shape once (rigid LQR) or the deformed shape at every control step (geometry-updating LQR), in
@@ -6,8 +7,11 @@ the body frame the frame IMU defines. Everything else flows through the sensor r
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
+from sdexp.control.controller import Controller
 from sdexp.control.lqr import regulated_states, state_weights
 from sdexp.control.neural import NeuralController, load_or_train_policy
 from sdexp.control.relinearizing import RelinearizingLQR
@@ -15,8 +19,6 @@ from sdexp.control.rigid import RigidGeometry, RigidLQR
 from sdexp.sim.rigid.geometry import rigid_body, rotation_2d
 from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.simulator import Simulator
-
-CONTROLLERS = ("ours", "rigid_lqr", "geometry_lqr", "neural")
 
 
 def geometry_of(sim: Simulator, rest: bool) -> RigidGeometry:
@@ -50,21 +52,42 @@ def state_sizes_of(dyn) -> dict[str, int]:
     return {"n_s": dyn.n_s, "n_e": dyn.n_e, "dim": dyn.dim, "m": dyn.m}
 
 
-def build(name: str, cfg, sim: Simulator, dyn=None, data=None, trained=None, progress: bool = True):
-    """One of CONTROLLERS, configured by ``cfg.control``."""
-    c, g = cfg.control, float(cfg.sim.gravity)
-    if name == "ours":
-        return ours(cfg, dyn, sim.drone.max_thrust)
-    if name == "rigid_lqr":
-        geom = geometry_of(sim, rest=True)
-        return RigidLQR(lambda: geom, c.q_e, c.q_p, c.velocity_scale, c.r, g, name=name, dt=riccati_step(cfg))
-    if name == "geometry_lqr":
-        return RigidLQR(lambda: geometry_of(sim, rest=False), c.q_e, c.q_p, c.velocity_scale, c.r, g,
-                        update_every=1, name=name, dt=riccati_step(cfg))
-    if name == "neural":
-        a = data.arrays
-        x = np.concatenate([np.asarray(a[k]).reshape(len(a[k]), -1) for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot")], 1)
-        policy, _ = load_or_train_policy(dyn, x, sim.drone.max_thrust, c.neural, int(cfg.seed), trained.key,
-                                         cfg.cache_dir, progress)
-        return NeuralController(policy)
-    raise ValueError(f"unknown controller {name!r}: choose from {CONTROLLERS}")
+def _ours(cfg, sim: Simulator, dyn, **_) -> RelinearizingLQR:
+    return ours(cfg, dyn, sim.drone.max_thrust)
+
+
+def _rigid_lqr(cfg, sim: Simulator, **_) -> RigidLQR:
+    c, geom = cfg.control, geometry_of(sim, rest=True)
+    return RigidLQR(lambda: geom, c.q_e, c.q_p, c.velocity_scale, c.r, float(cfg.sim.gravity), name="rigid_lqr",
+                    dt=riccati_step(cfg))
+
+
+def _geometry_lqr(cfg, sim: Simulator, **_) -> RigidLQR:
+    c = cfg.control
+    return RigidLQR(lambda: geometry_of(sim, rest=False), c.q_e, c.q_p, c.velocity_scale, c.r, float(cfg.sim.gravity),
+                    update_every=1, name="geometry_lqr", dt=riccati_step(cfg))
+
+
+def _neural(cfg, sim: Simulator, dyn, data, trained, progress: bool, **_) -> NeuralController:
+    a = data.arrays
+    x = np.concatenate([np.asarray(a[k]).reshape(len(a[k]), -1) for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot")], 1)
+    policy, _ = load_or_train_policy(dyn, x, sim.drone.max_thrust, cfg.control.neural, int(cfg.seed), trained.key,
+                                     cfg.cache_dir, progress)
+    return NeuralController(policy)
+
+
+# name -> builder(cfg, sim, dyn=, data=, trained=, progress=): the controller (its ``name`` is
+# this key), configured by ``cfg.control``; a builder takes what it needs and ignores the rest.
+# The names an experiment's ``controllers`` may list, checked before a run starts
+# (sdexp.eval.experiments.check_names). A new controller: its class (the Controller protocol)
+# and one line here.
+CONTROLLERS: dict[str, Callable[..., Controller]] = {
+    "ours": _ours, "rigid_lqr": _rigid_lqr, "geometry_lqr": _geometry_lqr, "neural": _neural,
+}
+
+
+def build(name: str, cfg, sim: Simulator, dyn=None, data=None, trained=None, progress: bool = True) -> Controller:
+    """The controller registered as ``name``, for a flight of ``sim``."""
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}: choose from {', '.join(CONTROLLERS)}")
+    return CONTROLLERS[name](cfg, sim, dyn=dyn, data=data, trained=trained, progress=progress)

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from sdexp import conf
 from sdexp.cache import atomic_write
@@ -44,16 +44,29 @@ def typed(cfg: DictConfig) -> Config:
     return OmegaConf.to_object(cfg)
 
 
-def check_groups(params) -> None:
-    """The params that name config options (a drone, an experiment) name existing ones."""
-    for f in dataclasses.fields(params):
-        group, value = f.metadata.get("group"), getattr(params, f.name)
-        if group is None or value is None:
+def known_names(kind: str) -> list[str]:
+    """What a param's ``names`` metadata allows: the registered controllers, or the options of
+    that config group (a drone, an experiment)."""
+    if kind == "controller":
+        from sdexp.eval.controllers import CONTROLLERS   # the controllers' code: only for a run that names them
+        return list(CONTROLLERS)
+    return conf.names(kind)
+
+
+def check_names(cfg: DictConfig) -> None:
+    """The params that name things (a drone, an experiment, a controller) name existing ones.
+    Read from the composed config, before the conversion runs the params' rules between fields,
+    so that a misspelled controller is reported as itself, not as a stray of sota's ``animate``."""
+    params = cfg.experiment.params
+    schema = OmegaConf.get_type(params)
+    for f in dataclasses.fields(schema) if dataclasses.is_dataclass(schema) else ():
+        kind, value = f.metadata.get("names"), params.get(f.name)
+        if kind is None or value is None:
             continue
-        names = conf.names(group)
-        for v in (value if isinstance(value, list) else [value]):
-            if v not in names:
-                raise UserError(f"experiment.params.{f.name}: {group} {v!r} is unknown: choose from {', '.join(names)}")
+        known = known_names(kind)
+        for v in (value if isinstance(value, ListConfig) else [value]):
+            if v not in known:
+                raise UserError(f"experiment.params.{f.name}: {kind} {v!r} is unknown: choose from {', '.join(known)}")
 
 
 # experiments that run a list of drones (experiment.params.drones): only the one named drone=<name>
@@ -204,8 +217,8 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
     if name not in experiments:
         raise UserError(f"experiment.name = {name!r} is unknown: choose one of {experiments}")
     validate(cfg)
+    check_names(cfg)
     config = typed(cfg)   # the one conversion: below here, dataclasses
-    check_groups(config.experiment.params)
     check_overrides_reach(config, overrides)
     from sdexp.sim.drone import make_shape
     make_shape(config.drone)   # the design's params (an unknown drone.params key) before anything is written

@@ -16,7 +16,7 @@ from sdexp.eval.controllers import build, geometry_of
 from sdexp.sim.drone import build_drone
 from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.simulator import Simulator
-from tests.test_cli import make_config as make_cfg
+from tests.conftest import make_config as make_cfg
 
 NO_LIMITS = FlightConfig(max_tilt_deg=None, arena_margin=None)
 

@@ -399,11 +399,9 @@ def test_a_bend_left_out_of_the_regulated_states_gets_no_gain_and_the_copter_hov
     (["noise=none"], None),                            # noise-free sensors: every bend is signal
 ])
 def test_ours_regulates_the_bends_its_training_data_saw_above_the_noise(overrides, regulated):
-    from hydra import compose, initialize_config_module
     from sdexp.eval.controllers import ours
-    from sdexp.eval.experiments import typed
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        cfg = typed(compose(config_name="config", overrides=overrides))
+    from tests.conftest import make_config
+    cfg = make_config(*overrides)
     dyn = PlanarCopter(True, n_s=2)
     dyn.bend_spread = np.array([0.3, 1.5 * np.radians(0.573)])
     ctl = ours(cfg, dyn, TMAX)

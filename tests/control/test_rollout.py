@@ -10,7 +10,7 @@ from sdexp.control.rollout import fly, metrics
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.sim.drone import build_drone
 from sdexp.sim.simulator import Simulator
-from tests.test_cli import make_config as make_cfg
+from tests.conftest import make_config as make_cfg
 
 DT = 0.01
 

@@ -3,7 +3,7 @@ short flights, few windows and a handful of candidates."""
 import pytest
 
 from sdexp.sim.drone import build_drone
-from tests.test_cli import make_config
+from tests.conftest import make_config
 
 SMALL = [
     "drone=leaf", "drone.mesh.edge_length=0.5",   # the bench drone

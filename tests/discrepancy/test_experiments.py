@@ -6,7 +6,7 @@ import pytest
 from sdexp.errors import UserError
 from sdexp.eval.experiments import run_experiment
 from tests.discrepancy.conftest import SMALL
-from tests.test_cli import make_cfg
+from tests.conftest import make_cfg
 
 
 def test_record_then_discrepancy(tmp_path, cache_dir):

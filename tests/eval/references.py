@@ -85,15 +85,13 @@ def compare(experiment: str, metrics: dict, reference: dict, rel_tol: float = 0.
 
 
 def regenerate(experiments, cache_dir: str | None = None) -> None:
-    from hydra import compose, initialize_config_module
-
     from sdexp.eval.experiments import run_experiment
+    from tests.conftest import make_cfg
 
     cache_dir = cache_dir or tempfile.mkdtemp(prefix="sdexp-ref-")
     REFERENCE_DIR.mkdir(parents=True, exist_ok=True)
     for name in experiments:
-        with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-            cfg = compose(config_name="config", overrides=reduced_overrides(name, cache_dir))
+        cfg = make_cfg(*reduced_overrides(name, cache_dir))
         with tempfile.TemporaryDirectory() as out:
             metrics = run_experiment(cfg, Path(out))
         keep = {k: metrics[k] for k in CHECKS[name]}

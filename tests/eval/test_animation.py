@@ -13,7 +13,7 @@ from sdexp.eval.experiments import run_experiment
 from tests.eval.references import reduced_overrides
 from sdexp.sim.mesh.surface import boundary_faces
 from sdexp.sim.physics.quadratic import quadratic_mesh
-from tests.test_cli import make_cfg, make_config
+from tests.conftest import make_cfg, make_config
 
 imageio = pytest.importorskip("imageio.v3")
 meshio = pytest.importorskip("meshio")

@@ -9,7 +9,7 @@ import pytest
 
 from sdexp.eval.experiments import run_experiment
 from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
-from tests.test_cli import make_cfg, make_config
+from tests.conftest import make_cfg, make_config
 
 
 def run(tmp_path, cache_dir, experiment):

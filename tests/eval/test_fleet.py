@@ -12,7 +12,7 @@ from sdexp.eval import fleet
 from sdexp.eval.experiments import run_experiment
 from sdexp.experiment_params import FleetParams
 from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
-from tests.test_cli import make_cfg, make_config
+from tests.conftest import make_cfg, make_config
 
 
 def reduced(cache_dir, *extra):

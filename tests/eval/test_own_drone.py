@@ -11,7 +11,7 @@ import pytest
 
 from sdexp.eval.experiments import run_experiment
 from tests.eval.references import SHRUNK
-from tests.test_cli import make_cfg
+from tests.conftest import make_cfg
 
 SECONDS = 0.3
 

@@ -5,22 +5,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_module
 
 from sdexp.errors import UserError
-from sdexp.eval.experiments import typed
 from sdexp.model import generate
 from sdexp.model.dataset import KEYS, DATA_FORMAT, Dataset, _write_npz, dataset_key, dataset_spec, load_dataset
+from tests.conftest import make_config
 
 CHUNK = 200          # three chunks of the 600 transitions below
 SMALL = ["drone=rod", "data=paper", "data.samples=600", "data.hold_seconds=0.5", "data.episode_seconds=1.5",
          "data.workers=1", "model.batch_size=64"]
 
 
-def make_cfg(cache_dir, *overrides):
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[*SMALL, f"cache_dir={cache_dir}", *overrides])
-    return typed(cfg)
+def small_config(cache_dir, *overrides):
+    """The typed config of the small data set above, caching in ``cache_dir``."""
+    return make_config(*SMALL, f"cache_dir={cache_dir}", *overrides)
 
 
 def final_path(cfg) -> Path:
@@ -36,7 +34,7 @@ def assert_same(a: Dataset, b: Dataset):
 
 @pytest.fixture(scope="module")
 def reference(cache_dir):
-    cfg = make_cfg(cache_dir)
+    cfg = small_config(cache_dir)
     return cfg, load_dataset(cfg, CHUNK)
 
 
@@ -85,7 +83,7 @@ def test_thrusts_are_uniform_holds_within_the_limit(reference):
 
 def test_rates_are_consistent_with_the_states_without_noise(cache_dir):
     # gentle thrusts (3 N a rotor): at full thrust the 8 m rod whips faster than 100 Hz resolves
-    ds = load_dataset(make_cfg(cache_dir, "noise=none", "drone.max_thrust=3"), CHUNK)
+    ds = load_dataset(small_config(cache_dir, "noise=none", "drone.max_thrust=3"), CHUNK)
     a, dt = ds.arrays, 0.01
     pairs = np.concatenate([idx[:-1] for idx in episodes(ds)])  # k and k + 1 in one episode
     nxt = pairs + 1
@@ -109,10 +107,10 @@ def test_rates_are_consistent_with_the_states_without_noise(cache_dir):
 
 def test_same_data_for_one_and_two_workers_and_other_data_for_another_seed(reference, tmp_path):
     cfg, ds1 = reference
-    ds2 = load_dataset(make_cfg(tmp_path / "two", "data.workers=2"), CHUNK)
+    ds2 = load_dataset(small_config(tmp_path / "two", "data.workers=2"), CHUNK)
     assert ds2.meta["workers"] == 2 and not ds2.meta["cached"]
     assert_same(ds1, ds2)
-    other = load_dataset(make_cfg(tmp_path / "seed", "seed=1"), CHUNK)
+    other = load_dataset(small_config(tmp_path / "seed", "seed=1"), CHUNK)
     assert not np.array_equal(other.arrays["u"], ds1.arrays["u"])
 
 
@@ -128,7 +126,7 @@ def test_second_load_is_a_fast_equal_cache_hit(reference):
 
 def test_a_killed_generation_resumes_from_its_chunks(reference, tmp_path, monkeypatch):
     _, ds = reference
-    cfg = make_cfg(tmp_path)
+    cfg = small_config(tmp_path)
     real = generate.generate_chunk
     made = []
 
@@ -155,7 +153,7 @@ def test_a_killed_generation_resumes_from_its_chunks(reference, tmp_path, monkey
 
 def test_a_stale_or_corrupt_cache_entry_is_regenerated_not_read(reference, tmp_path, caplog):
     _, ds = reference
-    cfg = make_cfg(tmp_path)
+    cfg = small_config(tmp_path)
     path = final_path(cfg)
     bad = {k: v[:10] for k, v in ds.arrays.items()}
     _write_npz(path, bad, {**ds.meta, "format": DATA_FORMAT + 1, "samples": 10})   # other version
@@ -186,12 +184,12 @@ def test_split_keeps_every_episode_on_one_side(reference):
 
 def test_too_small_a_dataset_or_no_sensors_is_a_clear_error(cache_dir):
     with pytest.raises(UserError, match=r"data\.samples.*model\.batch_size"):
-        load_dataset(make_cfg(cache_dir, "data.samples=100", "model.batch_size=512"), CHUNK)
+        load_dataset(small_config(cache_dir, "data.samples=100", "model.batch_size=512"), CHUNK)
     with pytest.raises(UserError, match=r"drone\.num_sensors = 0"):
-        load_dataset(make_cfg(cache_dir, "drone.num_sensors=0"), CHUNK)
+        load_dataset(small_config(cache_dir, "drone.num_sensors=0"), CHUNK)
     # enough transitions by count, but one episode cannot be split into train and validation
     with pytest.raises(UserError, match=r"data\.samples"):
-        load_dataset(make_cfg(cache_dir, "data.samples=100", "model.batch_size=32",
+        load_dataset(small_config(cache_dir, "data.samples=100", "model.batch_size=32",
                               "data.episode_seconds=30"), CHUNK)
 
 
@@ -225,20 +223,21 @@ def test_raw_3d_state_rates_are_the_derivative_of_the_raw_state():
 
 
 def test_thrust_range_narrows_the_holds_and_keys_the_cache(tmp_path):
-    narrow = make_cfg(str(tmp_path), "data=paper", "data.samples=400", "data.thrust_range=[0.0,0.2]")
+    narrow = small_config(str(tmp_path), "data=paper", "data.samples=400", "data.thrust_range=[0.0,0.2]")
     u = load_dataset(narrow, CHUNK).arrays["u"]
     assert u.min() >= 0.0 and u.max() <= 2.0 + 1e-6 and u.max() > 1.0
-    explicit = make_cfg(str(tmp_path), "data=paper", "data.thrust_range=[-1.0,1.0]")
-    paper = make_cfg(str(tmp_path), "data=paper")
+    explicit = small_config(str(tmp_path), "data=paper", "data.thrust_range=[-1.0,1.0]")
+    paper = small_config(str(tmp_path), "data=paper")
     assert dataset_key(dataset_spec(explicit, CHUNK)) == dataset_key(dataset_spec(paper, CHUNK))
-    assert dataset_key(dataset_spec(narrow, CHUNK)) != dataset_key(dataset_spec(make_cfg(str(tmp_path), "data=paper", "data.samples=400"), CHUNK))
+    wide = small_config(str(tmp_path), "data=paper", "data.samples=400")
+    assert dataset_key(dataset_spec(narrow, CHUNK)) != dataset_key(dataset_spec(wide, CHUNK))
 
 
 def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     from sdexp.sim.drone import build_drone
     from sdexp.sim.rigid.geometry import rest_hover_thrust
 
-    cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]")
+    cfg = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]")
     assert cfg.data.around_hover
     u = load_dataset(cfg, CHUNK).arrays["u"]
     hover = rest_hover_thrust(build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), float(cfg.sim.gravity))
@@ -247,10 +246,10 @@ def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     assert np.abs(u - hover).max() > 0.03 * tmax            # the draws span the range
     # hover thrust carries the weight: summed vertical share about m g for this level rod
     assert hover.sum() == pytest.approx(float(cfg.drone.mass) * float(cfg.sim.gravity), rel=0.05)
-    off = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
+    off = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
                    "data.around_hover=false")
     assert dataset_key(dataset_spec(off, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
-    rigid = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
+    rigid = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.05,0.05]",
                      "data.hover=rigid")
     assert dataset_key(dataset_spec(rigid, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))
 
@@ -259,18 +258,18 @@ def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
     from sdexp.sim.drone import build_drone
     from sdexp.sim.rigid.statics import shape_hover_thrust
 
-    cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
+    cfg = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
                    "data.hover=shape")
     u = load_dataset(cfg, CHUNK).arrays["u"]
     shape = shape_hover_thrust(build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), cfg.sim)
     assert np.all(np.abs(u - shape) <= 0.01 * float(cfg.drone.max_thrust) + 1e-5)
-    rigid = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]")
+    rigid = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]")
     assert dataset_key(dataset_spec(rigid, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
 
 def test_obstacles_are_scenery_not_part_of_the_data(reference):
     cfg, _ = reference
-    boxed = make_cfg(cfg.cache_dir, "sim.obstacles=[{min:[3,-6],max:[4,6]}]")
+    boxed = small_config(cfg.cache_dir, "sim.obstacles=[{min:[3,-6],max:[4,6]}]")
     assert dataset_key(dataset_spec(boxed, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))
     assert dataset_spec(boxed, CHUNK)["sim"].obstacles == []
 
@@ -279,7 +278,7 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
     from sdexp.sim.drone import build_drone
     from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
 
-    cfg = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
+    cfg = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]",
                    "data.deform_range=0.3", "data.deform_hold_seconds=0.5")
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     fem = drone.fem
@@ -302,7 +301,7 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
     for w in np.unique(ds["episode"] * 1000 + t // 50):
         rows = offset[ds["episode"] * 1000 + t // 50 == w]
         assert np.ptp(rows, axis=0).max() <= 2 * dither + 1e-5
-    off = make_cfg(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]")
+    off = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.001,0.001]")
     assert dataset_key(dataset_spec(off, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
     # a drone whose rotors cannot deform it without net lift or torque: a clear error
@@ -314,10 +313,10 @@ def test_deform_range_holds_patterns_with_no_net_lift_or_torque(tmp_path, monkey
 def test_the_data_key_is_the_configs_key_fields(tmp_path):
     """A mirrored mesh is another body and gets another key; thread and worker counts are not
     part of it (sdexp.config.NOT_KEY), nor is the split."""
-    cfg = make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[]")
+    cfg = small_config(str(tmp_path), "drone=star", "drone.mesh.mirror=[]")
     spec = dataset_spec(cfg, CHUNK)
     for other in ("sim.threads=2", "data.workers=3", "data.validation_fraction=0.3"):
-        assert dataset_key(dataset_spec(make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[]", other),
+        assert dataset_key(dataset_spec(small_config(str(tmp_path), "drone=star", "drone.mesh.mirror=[]", other),
                                         CHUNK)) == dataset_key(spec), other
-    mirrored = dataset_spec(make_cfg(str(tmp_path), "drone=star", "drone.mesh.mirror=[x,z]"), CHUNK)
+    mirrored = dataset_spec(small_config(str(tmp_path), "drone=star", "drone.mesh.mirror=[x,z]"), CHUNK)
     assert dataset_key(mirrored) != dataset_key(spec)

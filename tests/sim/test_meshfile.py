@@ -211,7 +211,7 @@ def test_the_tripod_config_validates_and_its_caches_follow_the_file_content(tmp_
 
     from sdexp.config import mesh_path, validate
     from sdexp.eval.experiments import typed
-    from tests.test_cli import make_cfg
+    from tests.conftest import make_cfg
     cfg = make_cfg("drone=tripod")
     validate(cfg)
     shipped = typed(cfg).drone.mesh.digest

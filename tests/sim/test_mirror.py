@@ -14,7 +14,7 @@ from sdexp.sensing import decompose
 from sdexp.sim.simulator import Simulator
 from sdexp.sim.rigid.statics import outer_rotors
 from tests.sim.test_shapes3d import surface_volume
-from tests.test_cli import make_config as make_cfg
+from tests.conftest import make_config as make_cfg
 
 
 def volumes(points, tets):

@@ -1,11 +1,10 @@
 """Open-loop statics of a soft body: the shape-holding hover thrust (data.hover: shape)."""
 import numpy as np
-from hydra import compose, initialize_config_module
 
-from sdexp.eval.experiments import typed
 from sdexp.sim.drone import build_drone
 from sdexp.sim.rigid.geometry import rest_hover_thrust, rigid_body, wrench_matrix
 from sdexp.sim.rigid.statics import deform_reach, hold, shape_hover_thrust
+from tests.conftest import make_config
 
 
 def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):
@@ -13,8 +12,7 @@ def test_the_shape_hover_carries_the_weight_and_keeps_the_rod_flat(cache_dir):
     split evenly) curls its ends. The shape-holding thrust differs from it by a pattern with no
     net lift or torque on the rest shape (it still just carries the weight, level), is mirror
     symmetric like the rod, and holds the bends several times smaller."""
-    with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-        cfg = typed(compose(config_name="config", overrides=["drone=rod", f"cache_dir={cache_dir}"]))
+    cfg = make_config("drone=rod", f"cache_dir={cache_dir}")
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     rigid = rest_hover_thrust(drone, float(cfg.sim.gravity))
     shape = shape_hover_thrust(drone, cfg.sim)
@@ -37,8 +35,7 @@ def test_how_far_the_rotors_can_bend_a_body_that_stays_level(cache_dir):
     the physics behind a failed deform task; the rainbow's two rotors leave no pattern at all (lift
     and tilt take both), so nothing bends it while it stays level."""
     def drone(name):
-        with initialize_config_module(config_module="sdexp.conf", version_base="1.3"):
-            cfg = typed(compose(config_name="config", overrides=[f"drone={name}", f"cache_dir={cache_dir}"]))
+        cfg = make_config(f"drone={name}", f"cache_dir={cache_dir}")
         return build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), cfg.sim
     assert deform_reach(*drone("rod")) > 90.0
     assert 0.1 < deform_reach(*drone("engine")) < 5.0

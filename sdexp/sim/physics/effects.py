@@ -72,12 +72,25 @@ class Effect:
     To be a discrepancy candidate, an effect declares what can be fitted: ``fit_params`` =
     {constructor argument: (lower, upper, typical step)} with physical bounds (theta is the
     value itself, 0 must mean "no effect"), or, for a re-parametrisation, a ``fit_spec``
-    classmethod returning a :class:`FitSpec`."""
+    classmethod returning a :class:`FitSpec`.
+
+    A library effect (``LIBRARY``) also declares what the bench and the tests need of it, so
+    that it is one class: ``bench_strengths`` and ``zero``."""
 
     name = "effect"
     description = ""
     equation = ""
     fit_params: dict = {}
+    # the discrepancy bench's hidden strengths (sdexp.discrepancy.bench): (constructor argument,
+    # moderate, strong); a direction, a rotor or a point is drawn per scenario there
+    bench_strengths: tuple | None = None
+
+    @classmethod
+    def zero(cls, dim: int) -> dict | None:
+        """Constructor arguments under which the effect does nothing on a ``dim``-D drone: the
+        simulator runs bitwise as without it (tests/sim/test_effects.py). None: not declared, or
+        not an effect of such a drone."""
+        return None
 
     @classmethod
     def fit_spec(cls, drone) -> FitSpec | None:
@@ -183,6 +196,11 @@ class MotorLag(Effect):
     equation = "tau dT/dt = T_cmd - T; applied = mean of T over the control step (exact for a held command)"
 
     fit_params = {"tau": (0.0, 0.3, 0.03)}   # s: slower than any multirotor motor and propeller
+    bench_strengths = ("tau", 0.06, 0.12)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"tau": 0.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -214,6 +232,11 @@ class ActuationDelay(Effect):
     equation = "T(t) = T_cmd(t - d), linear between control steps"
 
     fit_params = {"delay": (0.0, 0.3, 0.02)}
+    bench_strengths = ("delay", 0.02, 0.05)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"delay": 0.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -246,6 +269,11 @@ class ThrustLoss(Effect):
     name = "thrust_loss"
     description = "One rotor produces a fraction less thrust than commanded (worn or damaged propeller)."
     equation = "T_r = (1 - eta) T_cmd,r for the affected rotor r"
+    bench_strengths = ("fraction", 0.15, 0.3)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"fraction": 0.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -274,6 +302,11 @@ class GroundEffect(Effect):
     name = "ground_effect"
     description = "A rotor close to the ground makes more thrust (Cheeseman-Bennett image-vortex model)."
     equation = "T = T_cmd / (1 - (R / 4h)^2), h = rotor height above the ground, clamped at h >= R/2"
+    bench_strengths = ("radius", 1.0, 1.6)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"radius": 0.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -302,6 +335,11 @@ class RotorReactionTorque(Effect):
                    "torque on the whole body, or a couple on a motor-mount disc (mount_radius).")
     equation = ("tau_r = -s_r k T_r n_r (s_r = +-1 spin, alternating around the centre), as mass-weighted "
                 "forces m_i a n_r x r_i about the centre of mass (or a couple on a mount disc)")
+    bench_strengths = ("k", 0.15, 0.3)   # the sign (spin direction) drawn per scenario
+
+    @classmethod
+    def zero(cls, dim):
+        return {"k": 0.0} if dim == 3 else None   # 3D only
 
     @classmethod
     def fit_spec(cls, drone):
@@ -373,6 +411,11 @@ class RotorDrag(Effect):
     equation = "F_r = -k (v_r - (v_r . n_r) n_r), v_r the rotor patch velocity, spread over the patch"
 
     fit_params = {"k": (0.0, 5.0, 0.1)}   # N s/m; a drag never pushes
+    bench_strengths = ("k", 0.6, 1.5)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"k": 0.0}
 
     def __init__(self, k: float = 0.1):
         if k < 0:
@@ -396,6 +439,11 @@ class QuadraticDrag(Effect):
     equation = "f_i = -c a_i |v_i| v_i, c = rho C_d / 2 (N s^2/m^4), a_i the vertex's share of one side of the surface"
 
     fit_params = {"c": (0.0, 2.0, 0.03)}  # rho C_d / 2 of a flat plate is ~0.7; never negative
+    bench_strengths = ("c", 0.3, 0.7)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"c": 0.0}
 
     def __init__(self, c: float = 0.05):
         if c < 0:
@@ -424,6 +472,11 @@ class Wind(QuadraticDrag):
                 "dn = -n / T dt + s sqrt(2 / T) dW per axis (std s, correlation time T)")
 
     CHUNK = 1024   # gust samples drawn at a time: the sequence does not depend on how far a run looks
+    bench_strengths = ("velocity", 1.5, 3.0)   # m/s, in a horizontal direction drawn per scenario
+
+    @classmethod
+    def zero(cls, dim):
+        return {"velocity": [0.0] * dim, "c": 0.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -488,6 +541,11 @@ class Payload(Effect):
     name = "payload"
     description = "An extra point mass carried at an offset (battery, camera), lumped on the nearest vertices."
     equation = "m_i += m / n for the n vertices within radius of the rest point (at least the nearest)"
+    bench_strengths = ("mass", 0.1, 0.25)   # kg, at a point drawn near the centre of mass
+
+    @classmethod
+    def zero(cls, dim):
+        return {"mass": 0.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -532,6 +590,11 @@ class StiffnessScale(Effect):
     name = "stiffness_scale"
     description = "The material is stiffer or softer than nominal (Young's modulus times a factor)."
     equation = "E = k E_nominal (both Lame parameters scale)"
+    bench_strengths = ("scale", 0.6, 1.8)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"scale": 1.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -554,6 +617,11 @@ class DampingScale(Effect):
     name = "damping_scale"
     description = "The material (and air) dissipates more or less than nominal: mass-proportional damping times a factor."
     equation = "c = k c_nominal in m_i dv_i/dt = f_i - c m_i v_i"
+    bench_strengths = ("scale", 0.5, 2.0)
+
+    @classmethod
+    def zero(cls, dim):
+        return {"scale": 1.0}
 
     @classmethod
     def fit_spec(cls, drone):
@@ -577,6 +645,11 @@ class ImuBias(Effect):
     equation = "rot' = exp([b]x) rot (2D: theta + b); omega' = omega + b; pos' = pos + b; vel' = vel + b"
 
     CHANNELS = ("rot", "omega", "pos", "vel")
+    bench_strengths = ("value", 0.02, 0.05)   # rad: an attitude tilt in a direction drawn per scenario
+
+    @classmethod
+    def zero(cls, dim):
+        return {"channel": "rot", "value": [0.0] * (3 if dim == 3 else 1)}
 
     @classmethod
     def fit_spec(cls, drone):

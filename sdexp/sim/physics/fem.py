@@ -95,7 +95,7 @@ def build_fem(rest: np.ndarray, elems: np.ndarray, total_mass: float,
 
 # --------------------------------------------------------------------------------------------
 # Element kernels. Scalar locals only: per-element temporary arrays inside a parallel loop
-# halve the speed (DESIGN.md).
+# halve the speed.
 # --------------------------------------------------------------------------------------------
 
 @nb.njit(fastmath=True, cache=True, error_model="numpy")
