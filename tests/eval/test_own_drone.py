@@ -26,3 +26,18 @@ def test_ours_holds_the_tripod_up_from_its_stl(tmp_path, cache_dir):
     # it stays up: with its rotors off it would fall g t^2 / 2 = 0.44 m in this time
     assert m["ours_survival_time"] >= SECONDS - 1e-9
     assert np.isfinite(m["ours_final_error"]) and m["ours_final_error"] < 0.5 * 9.81 * SECONDS ** 2 / 2
+
+
+def test_the_fleet_flies_a_drone_of_ones_own_through_its_tasks(tmp_path, cache_dir):
+    """`sdexp experiment=fleet experiment.params.drones=[tripod]` (results/fleet_tripod/): a
+    drone from a mesh file has no drone.size, so its reach trip comes from its rest shape, and
+    its config's defaults list (custom.yaml) is applied when the fleet reads it by name. Reduced:
+    the tiny model, 0.3 s flights; every task is a flown row, no job failed."""
+    import pandas as pd
+    from tests.eval.references import reduced_overrides
+    overrides = [o for o in reduced_overrides("fleet", cache_dir) if not o.startswith("experiment.params.drones")]
+    m = run_experiment(make_cfg(*overrides, "experiment.params.drones=[tripod]"), tmp_path)
+    table = pd.read_csv(tmp_path / "fleet.csv")
+    assert m["jobs_failed"] == 0 and set(table["task"]) == {"hover", "reach", "velocity", "deform"}
+    reach = table[table["task"] == "reach"]["tolerance"].iloc[0]
+    assert reach == pytest.approx(0.1 * 2.49, rel=0.02)   # a tenth of its 2.49 m body
