@@ -147,7 +147,7 @@ int NAME(corotated_forces_3d)(const double *x, const int32_t *el, const real *Bm
 /* ------------------------------------------------------------------------------------------
  * Quadratic elements (quadratic.py has the math and the numba reference p2_range_3d/_2d).
  * 10-node tets, VTK order: corners 0-3, edges 4 (0,1) 5 (1,2) 6 (0,2) 7 (0,3) 8 (1,3) 9 (2,3).
- * Blocked like forces_impl: el (nb B, 10), Bm (nb, 9, B), vol (nb, B), q (nb, 16, B) holding
+ * Blocked like forces_impl, el too: el (nb, 10, B), Bm (nb, 9, B), vol (nb, B), q (nb, 16, B) holding
  * one warm-start quaternion per quadrature point (slot k at rows 4k..4k+3). */
 /* One quadrature point (barycentric L0..L3, literals at each call so the compiler folds them)
  * of a block of B tets: F from the effective corner positions (D: node offsets from node 0),
@@ -213,6 +213,11 @@ static inline __attribute__((always_inline)) int NAME(p2_point)(const real L0, c
     return bad;
 }
 
+/* Quadratic tets [e0, e1) into f (nv, 3). el is (nb, 10, B), so the node offsets are read lane
+ * by lane in SIMD gathers; the nodal forces are added into f by a scalar scatter, element by
+ * element. (Measured against it on the flower, issue 25: a four-wide scatter into rows
+ * (x, y, z, 0) after a SIMD transposition, and leaving the forces per element node for the
+ * velocity update to sum per vertex, both no faster: docs/speed.md.) */
 static int NAME(p2_forces_blocked)(const double *restrict x, const int32_t *restrict el, const real *restrict Bm,
         const real *restrict vol, real mu, real lam, real *restrict q, double *restrict f,
         int64_t e0, int64_t e1)
@@ -223,22 +228,27 @@ static int NAME(p2_forces_blocked)(const double *restrict x, const int32_t *rest
         int n = (e1 - base) < B ? (int)(e1 - base) : B;
         const real *Mp = Bm + 9 * base, *Vp = vol + base;
         real *Qp = q + 16 * base;
-        for (int i = 0; i < B; i++) {   /* rows past e1 are padding: node 0 ten times */
-            const int32_t *t = el + 10 * (base + i);
-            const double *p0 = x + 3 * t[0];
-            for (int a = 1; a < 10; a++)
-                for (int c = 0; c < 3; c++) D[3 * (a - 1) + c][i] = x[3 * t[a] + c] - p0[c];
+        const int32_t *restrict T = el + 10 * base;   /* node a of lane i: T[a B + i]; padding: vertex 0 */
+        double P0[3][B];
+        for (int c = 0; c < 3; c++) {
+            #pragma omp simd
+            for (int i = 0; i < B; i++) P0[c][i] = x[3 * T[i] + c];
         }
+        for (int a = 1; a < 10; a++)
+            for (int c = 0; c < 3; c++) {
+                #pragma omp simd
+                for (int i = 0; i < B; i++) D[3 * (a - 1) + c][i] = x[3 * T[a * B + i] + c] - P0[c][i];
+            }
         memset(H, 0, sizeof(H));
         inverted += NAME(p2_point)(QA, QB, QB, QB, D, Mp, Vp, Qp, mu, lam, H)
                   | NAME(p2_point)(QB, QA, QB, QB, D, Mp, Vp, Qp + 4 * B, mu, lam, H)
                   | NAME(p2_point)(QB, QB, QA, QB, D, Mp, Vp, Qp + 8 * B, mu, lam, H)
                   | NAME(p2_point)(QB, QB, QB, QA, D, Mp, Vp, Qp + 12 * B, mu, lam, H);
-        for (int i = 0; i < n; i++) {
-            const int32_t *t = el + 10 * (base + i);
-            for (int a = 0; a < 10; a++)
-                for (int c = 0; c < 3; c++) f[3 * t[a] + c] += H[3 * a + c][i];
-        }
+        for (int i = 0; i < n; i++)
+            for (int a = 0; a < 10; a++) {
+                const int64_t v = 3 * (int64_t)T[a * B + i];
+                for (int c = 0; c < 3; c++) f[v + c] += H[3 * a + c][i];
+            }
     }
     return inverted;
 }

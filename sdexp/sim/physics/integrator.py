@@ -273,13 +273,16 @@ class Body:
     def _blocked(self):
         """q and (el, Bm, vol) in the blocks of SIMD lanes the compiled 3D step reads in place
         (kernels.c, forces_impl / p2_forces_blocked); el padded with vertex 0, q with the
-        identity (a quadratic tet's row holds its quadrature points' quaternions side by side)."""
+        identity (a quadratic tet's row holds its quadrature points' quaternions side by side).
+        Quadratic tets' el is blocked too, (nb, 10, B): their node offsets are read in SIMD gathers."""
         f, b = self.fem, self._lib.block_size()
         per = f.n_rotations // f.n_elems
         q = blocked(self.q.reshape(f.n_elems, 4 * per), b, pad=np.tile([1.0, 0.0, 0.0, 0.0], per))
         el = np.zeros((q.shape[0] * b, f.elems.shape[1]), np.int32)
         el[:f.n_elems] = f.elems
         _, Bm, vol = self._elements
+        if f.elems.shape[1] == 10:
+            el = blocked(el, b)
         return q, (el, blocked(Bm.reshape(f.n_elems, 9), b), blocked(vol, b))
 
     def set_rotation(self, q) -> None:

@@ -2,10 +2,11 @@
  * math; fem.corotated_range_3d/_2d are the same computation in numba) and whole control steps
  * of substeps (advance; integrator.advance is its numba reference and fallback).
  *
- * Elements are processed in blocks of B: a scalar gather of the edge vectors Ds into
- * structure-of-arrays buffers, one branch-free loop the compiler turns into SIMD (F = Ds Dm^-1
- * onwards), a scalar scatter of the forces. This layout is what lets gcc vectorise it; numba's
- * LLVM keeps the same arithmetic scalar.
+ * Elements are processed in blocks of B: a gather of the edge vectors Ds into
+ * structure-of-arrays buffers (scalar; quadratic tets: SIMD gathers from a blocked el), one
+ * branch-free loop the compiler turns into SIMD (F = Ds Dm^-1 onwards), a scalar scatter of the
+ * forces. This layout is what lets gcc vectorise it; numba's LLVM keeps the same arithmetic
+ * scalar. The per-vertex update (kick, drift) is SIMD over vertices too, except with contacts.
  * Threads are OpenMP's: a region costs a microsecond or two, a numba parallel region ten. */
 #include <math.h>
 #include <stdlib.h>
@@ -17,6 +18,7 @@
 static int omp_get_thread_num(void) { return 0; }
 #endif
 #define B 32  /* elements per SIMD block */
+#define VT 64 /* vertices per tile of the velocity update */
 #define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
 /* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
  * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
@@ -162,45 +164,74 @@ static inline __attribute__((always_inline)) void contact(const Step *restrict s
     }
 }
 
-/* Velocity update of vertices [v0, v1): all forces, gravity, damping of the absolute velocity;
- * adds their deformation-damping sums (relative to ref) into my. d is a literal at each call,
- * so the compiler drops the z arithmetic in 2D. */
-static inline __attribute__((always_inline)) void kick(const Step *restrict s, const int d,
-        int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
+/* The summed forces (elastic, rotor, effects) on vertices [i0, i0 + n) into F: ext + fext, then
+ * the elastic forces of each thread's buffer fbuf[t] in turn. */
+static inline __attribute__((always_inline)) void tile_forces(const Step *restrict s, const int d,
+        int64_t i0, int n, double (*restrict F)[VT])
 {
     const int64_t nv = s->nv, nt = s->nt;
-    const double dt = s->dt, grav = s->gravity;
     const double *restrict ext = s->ext, *restrict fext = s->fext, *restrict fb = s->fbuf;
+    #pragma omp simd
+    for (int j = 0; j < n; j++) {
+        const int64_t i = i0 + j;
+        F[0][j] = ext[d * i] + fext[d * i]; F[1][j] = ext[d * i + 1] + fext[d * i + 1];
+        F[2][j] = d == 3 ? ext[d * i + 2] + fext[d * i + 2] : 0.0;
+    }
+    for (int64_t k = 0; k < nt; k++) {
+        const double *restrict g = fb + d * (nv * k + i0);
+        #pragma omp simd
+        for (int j = 0; j < n; j++) {
+            F[0][j] += g[d * j]; F[1][j] += g[d * j + 1];
+            if (d == 3) F[2][j] += g[d * j + 2];
+        }
+    }
+}
+
+/* Velocity update of vertices [v0, v1): all forces, gravity, damping of the absolute velocity;
+ * adds their deformation-damping sums (relative to ref) into my. In tiles of VT vertices: their
+ * forces summed first (tile_forces), then one SIMD loop. d and sums are literals at each call,
+ * so the compiler drops the z arithmetic in 2D and the sums when there is no deformation damping. */
+static inline __attribute__((always_inline)) void kick_impl(const Step *restrict s, const int d, const int sums,
+        int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
+{
+    const double dt = s->dt, grav = s->gravity;
     const double *restrict minv = s->minv, *restrict mass = s->mass, *restrict x = s->x;
     const double *restrict gshare = s->gravity_share;
     double *restrict v = s->v;
-    const int sums = s->deform_damping > 0.0;
+    const double r0 = ref[0], r1 = ref[1], r2 = ref[2];
     double M = 0, rx = 0, ry = 0, rz = 0, px = 0, py = 0, pz = 0, lx = 0, ly = 0, lz = 0;
     double sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-    for (int64_t i = v0; i < v1; i++) {
-        double fx = ext[d * i] + fext[d * i], fy = ext[d * i + 1] + fext[d * i + 1], fz = 0.0;
-        if (d == 3) fz = ext[d * i + 2] + fext[d * i + 2];
-        for (int64_t k = 0; k < nt; k++) {
-            const double *g = fb + d * (nv * k + i);
-            fx += g[0]; fy += g[1];
-            if (d == 3) fz += g[2];
-        }
-        double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0;
-        double ux = (v[d * i] + dt * fx * mi) * scale, uy = (v[d * i + 1] + dt * (fy * mi - g)) * scale, uz = 0.0;
-        v[d * i] = ux; v[d * i + 1] = uy;
-        if (d == 3) { uz = (v[d * i + 2] + dt * fz * mi) * scale; v[d * i + 2] = uz; }
-        if (sums && mi != 0.0) {
-            double m = mass[i], ax = x[d * i] - ref[0], ay = x[d * i + 1] - ref[1], az = 0.0;
-            if (d == 3) az = x[d * i + 2] - ref[2];
-            M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
-            lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
-            sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
-            syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+    double F[3][VT];
+    for (int64_t i0 = v0; i0 < v1; i0 += VT) {
+        const int n = v1 - i0 < VT ? (int)(v1 - i0) : VT;
+        tile_forces(s, d, i0, n, F);
+        #pragma omp simd reduction(+:M, rx, ry, rz, px, py, pz, lx, ly, lz, sxx, sxy, sxz, syy, syz, szz)
+        for (int j = 0; j < n; j++) {
+            const int64_t i = i0 + j;
+            double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0;
+            double ux = (v[d * i] + dt * F[0][j] * mi) * scale, uy = (v[d * i + 1] + dt * (F[1][j] * mi - g)) * scale, uz = 0.0;
+            v[d * i] = ux; v[d * i + 1] = uy;
+            if (d == 3) { uz = (v[d * i + 2] + dt * F[2][j] * mi) * scale; v[d * i + 2] = uz; }
+            if (sums) {   /* pinned vertices (minv 0) count with no mass */
+                double m = mi != 0.0 ? mass[i] : 0.0, ax = x[d * i] - r0, ay = x[d * i + 1] - r1, az = 0.0;
+                if (d == 3) az = x[d * i + 2] - r2;
+                M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
+                lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
+                sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
+                syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+            }
         }
     }
     my[S_M] = M; my[S_R] = rx; my[S_R + 1] = ry; my[S_R + 2] = rz; my[S_P] = px; my[S_P + 1] = py; my[S_P + 2] = pz;
     my[S_L] = lx; my[S_L + 1] = ly; my[S_L + 2] = lz;
     my[S_S] = sxx; my[S_S + 1] = sxy; my[S_S + 2] = sxz; my[S_S + 3] = syy; my[S_S + 4] = syz; my[S_S + 5] = szz;
+}
+
+static inline __attribute__((always_inline)) void kick(const Step *restrict s, const int d,
+        int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
+{
+    if (s->deform_damping > 0.0) kick_impl(s, d, 1, v0, v1, scale, ref, my);
+    else kick_impl(s, d, 0, v0, v1, scale, ref, my);
 }
 
 /* Deformation damping (keep < 1 when damp) towards the rigid velocity p + w x (x - ref - c),
@@ -214,6 +245,26 @@ static inline __attribute__((always_inline)) double drift(const Step *restrict s
     double *restrict x = s->x, *restrict v = s->v;
     const int contacts = s->ground > -1e300 || s->n_boxes > 0;  /* Body passes -1e300 for none */
     double vmax = 0.0;
+    if (!contacts) {   /* the same arithmetic, branch-free: one SIMD loop */
+        #pragma omp simd reduction(max:vmax)
+        for (int64_t i = v0; i < v1; i++) {
+            double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
+            double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
+            if (damp) {
+                const int on = minv[i] != 0.0;
+                double ax = qx - ref[0] - c[0], ay = qy - ref[1] - c[1], az = d == 3 ? qz - ref[2] - c[2] : 0.0;
+                double gx = p[0] + w[1] * az - w[2] * ay, gy = p[1] + w[2] * ax - w[0] * az;
+                ux = on ? gx + keep * (ux - gx) : ux; uy = on ? gy + keep * (uy - gy) : uy;
+                if (d == 3) { double gz = p[2] + w[0] * ay - w[1] * ax; uz = on ? gz + keep * (uz - gz) : uz; }
+            }
+            qx += dt * ux; qy += dt * uy; qz += dt * uz;
+            x[d * i] = qx; x[d * i + 1] = qy; v[d * i] = ux; v[d * i + 1] = uy;
+            if (d == 3) { x[d * i + 2] = qz; v[d * i + 2] = uz; }
+            double sp = ux * ux + uy * uy + uz * uz;
+            vmax = sp > vmax ? sp : vmax;
+        }
+        return vmax;
+    }
     for (int64_t i = v0; i < v1; i++) {
         double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
         double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
