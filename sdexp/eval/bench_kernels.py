@@ -4,8 +4,9 @@
 The commit's kernels.c and forces.h are built with this tree's flags into a temporary folder and
 its integrator.py is loaded as a module of its own (its Body with this tree's fem and native:
 good for commits whose Body and Step these still fit, such as issue 25's base). Both step the
-default flower (or ``--drone``) on one thread under the same random thrust holds: first the
-deviation of the positions after ``--seconds``, then the force kernel alone (``forces_only``,
+default flower (or ``--drone``) on one thread under the same random thrust holds: first whether
+the two stay bitwise equal (positions and velocities after every control step; else how far
+apart after 0.6 s), then the force kernel alone (``forces_only``,
 ns per element-substep) and whole control steps, the two taking turns every few milliseconds
 (kernel) or 10 control steps (step), so a load that changes over seconds falls on both alike.
 Speedups are medians of the per-turn ratios; GFLOP/s and the share of the FMA probe's peak
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import importlib.util
+import logging
 import os
 import subprocess
 import tempfile
@@ -33,6 +35,7 @@ from sdexp.sim.physics import native
 from sdexp.sim.physics.integrator import Body
 
 PHYSICS = "sdexp/sim/physics"
+log = logging.getLogger(__name__)
 
 
 def load_commit(commit: str, folder: Path):
@@ -56,28 +59,47 @@ def load_commit(commit: str, folder: Path):
     return module.Body, lib
 
 
-def _simulator(drone, precision: str, body_class, lib):
+def _simulator(drone, precision: str, body_class, lib, threads: int = 1, **sim):
     simulator.Body = body_class   # the Simulator builds its body through this name
     try:
-        sim = simulator.Simulator(drone, SimConfig(threads=1, precision=precision), NoiseConfig(enabled=False), 0)
+        s = simulator.Simulator(drone, SimConfig(threads=threads, precision=precision, **sim),
+                                NoiseConfig(enabled=False), 0)
     finally:
         simulator.Body = Body
-    sim.body._lib = lib
-    return sim
+    s.body._lib = lib
+    return s
+
+
+def first_difference(drone, old, precision: str, steps: int, threads: int = 1, seed: int = 0, **sim):
+    """Steps ``old`` (load_commit's pair) and this tree's step side by side, noise-free, ``steps``
+    control steps under random thrust holds (new every 10 steps): (the first control step after
+    which positions or velocities differ in any bit, or the failures (speed, inversion), None
+    if none; the largest position
+    difference at the end; the lowest vertex height seen, to tell that a ground was reached).
+    ``sim``: more SimConfig fields (ground, obstacles, mass_scaling, element)."""
+    sims = [_simulator(drone, precision, *old, threads=threads, **sim),
+            _simulator(drone, precision, Body, native.library(), threads=threads, **sim)]
+    rng = np.random.default_rng(seed)
+    first, lowest, hold = None, np.inf, None
+    for j in range(steps):
+        if j % 10 == 0:
+            hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
+        for s in sims:
+            s.step(hold)
+        a, b = (s.body for s in sims)
+        if first is None and not (np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
+                                  and sims[0].failure == sims[1].failure):
+            first = j
+        lowest = min(lowest, float(b.x[:, 1].min()))
+    return first, float(np.abs(sims[0].body.x - sims[1].body.x).max()), lowest
 
 
 def compare(drone, old, precision: str, seconds: float = 0.6, rounds: int = 100, blocks: int = 60,
             seed: int = 0) -> dict:
+    first, deviation, _ = first_difference(drone, old, precision, int(round(seconds / 0.01)), seed=seed)
     sims = {"before": _simulator(drone, precision, *old),
             "after": _simulator(drone, precision, Body, native.library())}
-    rng = np.random.default_rng(seed)
-    hold = None
-    for j in range(int(round(seconds / sims["after"].cfg.control_dt))):
-        if j % 10 == 0:
-            hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
-        for s in sims.values():
-            s.step(hold)
-    deviation = float(np.abs(sims["before"].body.x - sims["after"].body.x).max())
+    hold = np.random.default_rng(seed).uniform(-1, 1, drone.num_rotors) * drone.max_thrust
     kern = {k: [] for k in sims}
     step = {k: [] for k in sims}
     peak = []
@@ -96,7 +118,7 @@ def compare(drone, old, precision: str, seconds: float = 0.6, rounds: int = 100,
                 s.step(hold)
             step[k].append(1e9 * (time.perf_counter() - t0) / (10 * s.n_sub * ne))
     flops, top = FLOPS[drone.fem.elems.shape[1]], max(peak)
-    out = {"precision": precision, "deviation_m": deviation, "peak_gflops": top,
+    out = {"precision": precision, "deviation_m": deviation, "bitwise": first is None, "peak_gflops": top,
            "kernel_speedup": float(np.median(np.array(kern["before"]) / np.array(kern["after"]))),
            "step_speedup": float(np.median(np.array(step["before"]) / np.array(step["after"])))}
     for k in sims:
@@ -118,11 +140,14 @@ def main(argv=None) -> None:
         old = load_commit(a.against, Path(folder))
         for precision in ("float64", "float32"):
             r = compare(drone, old, precision, rounds=a.rounds, blocks=a.blocks)
-            print(f"{a.drone} {precision}: kernel {r['kernel_ns_before']:.1f} -> {r['kernel_ns_after']:.1f} ns/element-substep "
-                  f"(x{r['kernel_speedup']:.3f}; {r['peak_share_before']:.0%} -> {r['peak_share_after']:.0%} of the "
-                  f"{r['peak_gflops']:.0f} GFLOP/s probe), step {r['step_ns_before']:.1f} -> {r['step_ns_after']:.1f} "
-                  f"ns/element-substep (x{r['step_speedup']:.3f}); positions {r['deviation_m']:.2g} m apart after 0.6 s")
+            same = ("bitwise equal through 0.6 s" if r["bitwise"] else
+                    f"positions {r['deviation_m']:.2g} m apart after 0.6 s")
+            log.info(f"{a.drone} {precision}: kernel {r['kernel_ns_before']:.1f} -> {r['kernel_ns_after']:.1f} ns/element-substep "
+                     f"(x{r['kernel_speedup']:.3f}; {r['peak_share_before']:.0%} -> {r['peak_share_after']:.0%} of the "
+                     f"{r['peak_gflops']:.0f} GFLOP/s probe), step {r['step_ns_before']:.1f} -> {r['step_ns_after']:.1f} "
+                     f"ns/element-substep (x{r['step_speedup']:.3f}); {same}")
 
 
 if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     main()

@@ -128,6 +128,17 @@ static void rigid_motion(const double *sum, int64_t dim, double c[3], double p[3
     w[2] = inv * (A02 * L[0] + A12 * L[1] + A22 * L[2]);
 }
 
+#if defined(__FMA__) && (defined(__x86_64__) || defined(__i386__))
+#define EXACT_SIMD 1
+#ifdef __AVX512F__
+#define KEEP(a) __asm__("" : "+v"(a))   /* an opaque step: no vectorising, no reassociating the sum */
+#else
+#define KEEP(a) __asm__("" : "+x"(a))
+#endif
+#else
+#define EXACT_SIMD 0
+#endif
+
 /* Contact of one vertex (position p, velocity u) with the ground and the static boxes: project
  * out along the normal, cancel the inward normal velocity, take Coulomb friction off the
  * tangential velocity (integrator.integrate). */
@@ -137,7 +148,11 @@ static inline __attribute__((always_inline)) void contact(const Step *restrict s
     if (p[1] < s->ground) {
         p[1] = s->ground;
         if (u[1] < 0.0) {
+#if EXACT_SIMD   /* the sums of squares as gcc had contracted them before the SIMD loops (see kick_impl) */
+            double vt = sqrt(d == 3 ? fma(u[2], u[2], u[0] * u[0]) : u[0] * u[0]);
+#else
             double vt = sqrt(u[0] * u[0] + u[2] * u[2]);
+#endif
             double keep = fmax(0.0, 1.0 - s->friction * (-u[1]) / (vt + 1e-12));
             u[0] *= keep; u[2] *= keep; u[1] = 0.0;
         }
@@ -156,7 +171,12 @@ static inline __attribute__((always_inline)) void contact(const Step *restrict s
         double vn = u[axis];
         p[axis] += side * best;
         if (vn * side < 0.0) {
+#if EXACT_SIMD
+            double t2 = d == 3 ? fma(u[2], u[2], u[1] * u[1]) + fma(-vn, vn, u[0] * u[0])
+                               : fma(u[1], u[1], u[0] * u[0]) + fma(-vn, vn, u[2] * u[2]);
+#else
             double t2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2] - vn * vn;
+#endif
             double keep = fmax(0.0, 1.0 - s->friction * fabs(vn) / (sqrt(fmax(t2, 0.0)) + 1e-12));
             u[0] *= keep; u[1] *= keep; u[2] *= keep;
             u[axis] = 0.0;
@@ -164,6 +184,58 @@ static inline __attribute__((always_inline)) void contact(const Step *restrict s
     }
 }
 
+/* The vertex loops (kick, drift) are bitwise those of the scalar loops they replaced (issue 25;
+ * the scalar loop is kept below as kick_scalar and drift's contact loop): every result is
+ * expected to repeat to the digit, and a chaotic flight amplifies one ulp. Under -ffast-math gcc
+ * had contracted and reassociated those scalar loops in its own way (read from
+ * -fdump-tree-optimized, gcc 12, x86-64 with FMA); the SIMD loops spell out the same expression
+ * trees with explicit fma(), one rounding where the scalar code had one, and add the
+ * deformation-damping sums vertex by vertex in the scalar order. tests/sim/test_bitwise_step.py steps this
+ * code against the base commit's build (bitwise, both precisions, 1 and 2 threads, contacts).
+ * Without FMA (where gcc contracts nothing) the scalar loops run as before. The sums over thread
+ * buffers are in thread order, as the scalar loop's for up to 3 threads (gcc vectorised that
+ * loop, reassociating it, from 4). */
+
+/* The old scalar velocity update (the fallback without FMA; kick_impl is bitwise this with it). */
+static inline __attribute__((always_inline)) void kick_scalar(const Step *restrict s, const int d,
+        int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
+{
+    const int64_t nv = s->nv, nt = s->nt;
+    const double dt = s->dt, grav = s->gravity;
+    const double *restrict ext = s->ext, *restrict fext = s->fext, *restrict fb = s->fbuf;
+    const double *restrict minv = s->minv, *restrict mass = s->mass, *restrict x = s->x;
+    const double *restrict gshare = s->gravity_share;
+    double *restrict v = s->v;
+    const int sums = s->deform_damping > 0.0;
+    double M = 0, rx = 0, ry = 0, rz = 0, px = 0, py = 0, pz = 0, lx = 0, ly = 0, lz = 0;
+    double sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+    for (int64_t i = v0; i < v1; i++) {
+        double fx = ext[d * i] + fext[d * i], fy = ext[d * i + 1] + fext[d * i + 1], fz = 0.0;
+        if (d == 3) fz = ext[d * i + 2] + fext[d * i + 2];
+        for (int64_t k = 0; k < nt; k++) {
+            const double *g = fb + d * (nv * k + i);
+            fx += g[0]; fy += g[1];
+            if (d == 3) fz += g[2];
+        }
+        double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0;
+        double ux = (v[d * i] + dt * fx * mi) * scale, uy = (v[d * i + 1] + dt * (fy * mi - g)) * scale, uz = 0.0;
+        v[d * i] = ux; v[d * i + 1] = uy;
+        if (d == 3) { uz = (v[d * i + 2] + dt * fz * mi) * scale; v[d * i + 2] = uz; }
+        if (sums && mi != 0.0) {
+            double m = mass[i], ax = x[d * i] - ref[0], ay = x[d * i + 1] - ref[1], az = 0.0;
+            if (d == 3) az = x[d * i + 2] - ref[2];
+            M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
+            lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
+            sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
+            syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+        }
+    }
+    my[S_M] = M; my[S_R] = rx; my[S_R + 1] = ry; my[S_R + 2] = rz; my[S_P] = px; my[S_P + 1] = py; my[S_P + 2] = pz;
+    my[S_L] = lx; my[S_L + 1] = ly; my[S_L + 2] = lz;
+    my[S_S] = sxx; my[S_S + 1] = sxy; my[S_S + 2] = sxz; my[S_S + 3] = syy; my[S_S + 4] = syz; my[S_S + 5] = szz;
+}
+
+#if EXACT_SIMD
 /* The summed forces (elastic, rotor, effects) on vertices [i0, i0 + n) into F: ext + fext, then
  * the elastic forces of each thread's buffer fbuf[t] in turn. */
 static inline __attribute__((always_inline)) void tile_forces(const Step *restrict s, const int d,
@@ -189,8 +261,12 @@ static inline __attribute__((always_inline)) void tile_forces(const Step *restri
 
 /* Velocity update of vertices [v0, v1): all forces, gravity, damping of the absolute velocity;
  * adds their deformation-damping sums (relative to ref) into my. In tiles of VT vertices: their
- * forces summed first (tile_forces), then one SIMD loop. d and sums are literals at each call,
- * so the compiler drops the z arithmetic in 2D and the sums when there is no deformation damping. */
+ * forces summed first (tile_forces), then one SIMD loop for the velocities and the terms of the
+ * sums, then the sums in vertex order (scalar: sixteen independent chains). d and sums are
+ * literals at each call, so the compiler drops the z arithmetic in 2D and the sums when there
+ * is no deformation damping. The expressions are kick_scalar's as gcc compiled them:
+ * u = scale (v + f (mi dt)) fused, uy's (fy mi - g) fused and then dt that + v fused;
+ * r += m a unfused, p += u m fused, l += m (one product fused, the other rounded), s += a (m a). */
 static inline __attribute__((always_inline)) void kick_impl(const Step *restrict s, const int d, const int sums,
         int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
 {
@@ -202,40 +278,114 @@ static inline __attribute__((always_inline)) void kick_impl(const Step *restrict
     double M = 0, rx = 0, ry = 0, rz = 0, px = 0, py = 0, pz = 0, lx = 0, ly = 0, lz = 0;
     double sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
     double F[3][VT];
+    /* per vertex of the tile: m (0 when pinned), m a, u, the cross terms of a x u, a */
+    double Tm[VT], Tma[3][VT], Tu[3][VT], Tl[3][VT], Ta[3][VT];
     for (int64_t i0 = v0; i0 < v1; i0 += VT) {
         const int n = v1 - i0 < VT ? (int)(v1 - i0) : VT;
         tile_forces(s, d, i0, n, F);
-        #pragma omp simd reduction(+:M, rx, ry, rz, px, py, pz, lx, ly, lz, sxx, sxy, sxz, syy, syz, szz)
+        #pragma omp simd
         for (int j = 0; j < n; j++) {
             const int64_t i = i0 + j;
-            double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0;
-            double ux = (v[d * i] + dt * F[0][j] * mi) * scale, uy = (v[d * i + 1] + dt * (F[1][j] * mi - g)) * scale, uz = 0.0;
+            const double mi = minv[i], g = mi > 0.0 ? (gshare ? grav * gshare[i] : grav) : 0.0, mdt = mi * dt;
+            const double ux = scale * fma(F[0][j], mdt, v[d * i]);
+            const double uy = scale * fma(fma(F[1][j], mi, -g), dt, v[d * i + 1]);
             v[d * i] = ux; v[d * i + 1] = uy;
-            if (d == 3) { uz = (v[d * i + 2] + dt * F[2][j] * mi) * scale; v[d * i + 2] = uz; }
-            if (sums) {   /* pinned vertices (minv 0) count with no mass */
-                double m = mi != 0.0 ? mass[i] : 0.0, ax = x[d * i] - r0, ay = x[d * i + 1] - r1, az = 0.0;
-                if (d == 3) az = x[d * i + 2] - r2;
-                M += m; rx += m * ax; ry += m * ay; rz += m * az; px += m * ux; py += m * uy; pz += m * uz;
-                lx += m * (ay * uz - az * uy); ly += m * (az * ux - ax * uz); lz += m * (ax * uy - ay * ux);
-                sxx += m * ax * ax; sxy += m * ax * ay; sxz += m * ax * az;
-                syy += m * ay * ay; syz += m * ay * az; szz += m * az * az;
+            double uz = 0.0;
+            if (d == 3) { uz = scale * fma(F[2][j], mdt, v[d * i + 2]); v[d * i + 2] = uz; }
+            if (sums) {   /* pinned vertices (minv 0) count with no mass: each sum gains an exact 0 */
+                const double m = mi != 0.0 ? mass[i] : 0.0, ax = x[d * i] - r0, ay = x[d * i + 1] - r1;
+                Tm[j] = m; Tma[0][j] = m * ax; Tma[1][j] = m * ay; Ta[0][j] = ax; Ta[1][j] = ay;
+                Tu[0][j] = ux; Tu[1][j] = uy;
+                Tl[2][j] = fma(uy, ax, -(ux * ay));
+                if (d == 3) {
+                    const double az = x[d * i + 2] - r2;
+                    Tma[2][j] = m * az; Ta[2][j] = az; Tu[2][j] = uz;
+                    Tl[0][j] = fma(uz, ay, -(uy * az)); Tl[1][j] = fma(ux, az, -(uz * ax));
+                }
             }
         }
+        if (sums)
+            for (int j = 0; j < n; j++) {
+                const double m = Tm[j], mx = Tma[0][j], mY = Tma[1][j], ax = Ta[0][j], ay = Ta[1][j];
+                M += m; rx += mx; ry += mY;
+                px = fma(Tu[0][j], m, px); py = fma(Tu[1][j], m, py); lz = fma(m, Tl[2][j], lz);
+                sxx = fma(ax, mx, sxx); sxy = fma(ay, mx, sxy); syy = fma(ay, mY, syy);
+                KEEP(M); KEEP(rx); KEEP(ry); KEEP(px); KEEP(py); KEEP(lz); KEEP(sxx); KEEP(sxy); KEEP(syy);
+                if (d == 3) {
+                    const double mz = Tma[2][j], az = Ta[2][j];
+                    rz += mz; pz = fma(Tu[2][j], m, pz); lx = fma(m, Tl[0][j], lx); ly = fma(m, Tl[1][j], ly);
+                    sxz = fma(az, mx, sxz); syz = fma(az, mY, syz); szz = fma(az, mz, szz);
+                    KEEP(rz); KEEP(pz); KEEP(lx); KEEP(ly); KEEP(sxz); KEEP(syz); KEEP(szz);
+                }
+            }
     }
     my[S_M] = M; my[S_R] = rx; my[S_R + 1] = ry; my[S_R + 2] = rz; my[S_P] = px; my[S_P + 1] = py; my[S_P + 2] = pz;
     my[S_L] = lx; my[S_L + 1] = ly; my[S_L + 2] = lz;
     my[S_S] = sxx; my[S_S + 1] = sxy; my[S_S + 2] = sxz; my[S_S + 3] = syy; my[S_S + 4] = syz; my[S_S + 5] = szz;
 }
+#endif
 
 static inline __attribute__((always_inline)) void kick(const Step *restrict s, const int d,
         int64_t v0, int64_t v1, double scale, const double *restrict ref, double *restrict my)
 {
+#if EXACT_SIMD
     if (s->deform_damping > 0.0) kick_impl(s, d, 1, v0, v1, scale, ref, my);
     else kick_impl(s, d, 0, v0, v1, scale, ref, my);
+#else
+    kick_scalar(s, d, v0, v1, scale, ref, my);
+#endif
 }
 
+#if EXACT_SIMD
+/* drift's arithmetic for one vertex before its contacts, as gcc had compiled the scalar loop:
+ * the deformation damping u' = g + keep (u - g), g = p + w x a (a = q - (ref + c)), spelled
+ * (3D) g = (p + w a) - w a and u - g = (u + w a) - (p + w a), each + or - of a product fused;
+ * (2D) ux - gx = (ux - px) + w ay; then q += dt u fused. on: the vertex is free. */
+static inline __attribute__((always_inline)) void damp_move(const int d, const int damp, const int on,
+        const double *restrict rc, const double *restrict p, const double *restrict w, double keep, double dt,
+        double *restrict u, double *restrict q)
+{
+    double ux = u[0], uy = u[1], uz = u[2];
+    if (damp) {
+        const double ax = q[0] - rc[0], ay = q[1] - rc[1];
+        if (d == 3) {
+            const double az = q[2] - rc[2];
+            const double tx = fma(az, w[1], p[0]), gx = fma(-ay, w[2], tx);
+            const double ty = fma(ax, w[2], p[1]), gy = fma(-az, w[0], ty);
+            const double tz = fma(ay, w[0], p[2]), gz = fma(-ax, w[1], tz);
+            const double nx = fma(keep, fma(ay, w[2], ux) - tx, gx);
+            const double ny = fma(keep, fma(az, w[0], uy) - ty, gy);
+            const double nz = fma(keep, fma(ax, w[1], uz) - tz, gz);
+            ux = on ? nx : ux; uy = on ? ny : uy; uz = on ? nz : uz;
+        } else {
+            const double gx = fma(-ay, w[2], p[0]), gy = fma(ax, w[2], p[1]);
+            const double nx = fma(keep, fma(ay, w[2], ux - p[0]), gx);
+            const double ny = fma(uy - gy, keep, gy);
+            ux = on ? nx : ux; uy = on ? ny : uy;
+        }
+    }
+    u[0] = ux; u[1] = uy; u[2] = uz;
+    q[0] = fma(dt, ux, q[0]); q[1] = fma(dt, uy, q[1]);
+    if (d == 3) q[2] = fma(dt, uz, q[2]);
+}
+
+/* |u|^2 as the scalar loop had it: 3D (ux ux + uz uz fused) + uy uy rounded. The max with
+ * uy uy changes nothing (the first term is >= 0) but gives the product a use gcc cannot fuse
+ * into the addition, so it stays rounded as before. */
+static inline __attribute__((always_inline)) double speed2(const int d, const double *restrict u)
+{
+    if (d == 3) {
+        const double yy = u[1] * u[1];
+        return fmax(fma(u[0], u[0], u[2] * u[2]) + yy, yy);
+    }
+    return fma(u[0], u[0], u[1] * u[1]);
+}
+#endif
+
 /* Deformation damping (keep < 1 when damp) towards the rigid velocity p + w x (x - ref - c),
- * position update and contact of vertices [v0, v1). Returns their largest squared speed. */
+ * position update and contact of vertices [v0, v1). Returns their largest squared speed.
+ * Without contacts one SIMD loop (branch-free), with them a scalar loop; both bitwise the
+ * scalar loop of before (damp_move). */
 static inline __attribute__((always_inline)) double drift(const Step *restrict s, const int d,
         int64_t v0, int64_t v1, int damp, double keep, const double *restrict ref,
         const double *restrict c, const double *restrict p, const double *restrict w)
@@ -245,26 +395,32 @@ static inline __attribute__((always_inline)) double drift(const Step *restrict s
     double *restrict x = s->x, *restrict v = s->v;
     const int contacts = s->ground > -1e300 || s->n_boxes > 0;  /* Body passes -1e300 for none */
     double vmax = 0.0;
-    if (!contacts) {   /* the same arithmetic, branch-free: one SIMD loop */
+#if EXACT_SIMD
+    const double rc[3] = {ref[0] + c[0], ref[1] + c[1], ref[2] + c[2]};
+    const double pp[3] = {p[0], p[1], p[2]}, ww[3] = {w[0], w[1], w[2]};
+    if (!contacts) {
         #pragma omp simd reduction(max:vmax)
         for (int64_t i = v0; i < v1; i++) {
-            double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
-            double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
-            if (damp) {
-                const int on = minv[i] != 0.0;
-                double ax = qx - ref[0] - c[0], ay = qy - ref[1] - c[1], az = d == 3 ? qz - ref[2] - c[2] : 0.0;
-                double gx = p[0] + w[1] * az - w[2] * ay, gy = p[1] + w[2] * ax - w[0] * az;
-                ux = on ? gx + keep * (ux - gx) : ux; uy = on ? gy + keep * (uy - gy) : uy;
-                if (d == 3) { double gz = p[2] + w[0] * ay - w[1] * ax; uz = on ? gz + keep * (uz - gz) : uz; }
-            }
-            qx += dt * ux; qy += dt * uy; qz += dt * uz;
-            x[d * i] = qx; x[d * i + 1] = qy; v[d * i] = ux; v[d * i + 1] = uy;
-            if (d == 3) { x[d * i + 2] = qz; v[d * i + 2] = uz; }
-            double sp = ux * ux + uy * uy + uz * uz;
+            double u[3] = {v[d * i], v[d * i + 1], d == 3 ? v[d * i + 2] : 0.0};
+            double q[3] = {x[d * i], x[d * i + 1], d == 3 ? x[d * i + 2] : 0.0};
+            damp_move(d, damp, minv[i] != 0.0, rc, pp, ww, keep, dt, u, q);
+            x[d * i] = q[0]; x[d * i + 1] = q[1]; v[d * i] = u[0]; v[d * i + 1] = u[1];
+            if (d == 3) { x[d * i + 2] = q[2]; v[d * i + 2] = u[2]; }
+            const double sp = speed2(d, u);
             vmax = sp > vmax ? sp : vmax;
         }
-        return vmax;
-    }
+    } else
+        for (int64_t i = v0; i < v1; i++) {
+            double u[3] = {v[d * i], v[d * i + 1], d == 3 ? v[d * i + 2] : 0.0};
+            double q[3] = {x[d * i], x[d * i + 1], d == 3 ? x[d * i + 2] : 0.0};
+            damp_move(d, damp, minv[i] != 0.0, rc, pp, ww, keep, dt, u, q);
+            contact(s, d, q, u);
+            x[d * i] = q[0]; x[d * i + 1] = q[1]; v[d * i] = u[0]; v[d * i + 1] = u[1];
+            if (d == 3) { x[d * i + 2] = q[2]; v[d * i + 2] = u[2]; }
+            const double sp = speed2(d, u);
+            vmax = sp > vmax ? sp : vmax;
+        }
+#else
     for (int64_t i = v0; i < v1; i++) {
         double ux = v[d * i], uy = v[d * i + 1], uz = d == 3 ? v[d * i + 2] : 0.0;
         double qx = x[d * i], qy = x[d * i + 1], qz = d == 3 ? x[d * i + 2] : 0.0;
@@ -285,6 +441,7 @@ static inline __attribute__((always_inline)) double drift(const Step *restrict s
         double sp = ux * ux + uy * uy + uz * uz;
         vmax = sp > vmax ? sp : vmax;
     }
+#endif
     return vmax;
 }
 
