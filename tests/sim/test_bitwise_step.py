@@ -20,11 +20,9 @@ import pytest
 from sdexp import conf
 from sdexp.config import BoxConfig
 from sdexp.sim.physics import native
-from sdexp.sim.mesh.structured import box_tets, box_tris
-from sdexp.sim.physics.fem import build_fem
 from sdexp.sim.physics.integrator import Body
 
-from .test_fem import _rigid_field
+from .test_fem import _rigid_field, rotor_block
 
 BASE = "5babb13"   # the last commit with the scalar vertex loops (issue 25's base)
 ROOT = Path(__file__).resolve().parents[2]
@@ -82,23 +80,9 @@ def test_pinned_blocks_step_bitwise_as_the_base_commit(old, dim, threads, order,
     vertex), linear and quadratic, with and without deformation damping, free and on a ground
     with friction:
     bitwise BASE's step."""
-    from sdexp.sim.drone import build_rotors
-    from sdexp.sim.mesh.surface import boundary_faces
-    from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
-
     old_body, old_lib = old
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)
-    if dim == 3:
-        pts, el = box_tets((4, 2, 3), (1.0, 0.4, 0.6), (-0.5, -0.2, -0.3))
-    else:
-        pts, el = box_tris((8, 3), (1.0, 0.4), (-0.5, -0.2))
-    faces = boundary_faces(el)
-    if order == 2:
-        pts, el = quadratic_mesh(pts, el)
-        faces = boundary_subfaces(faces, el)
-    fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
-    up = np.eye(dim)[1]
-    rotors = build_rotors(fem.rest, faces, [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
+    fem, rotors = rotor_block(dim, order)
     rng = np.random.default_rng(11)
     v0 = _rigid_field(fem.rest, rng, dim) + 0.2 * rng.standard_normal(fem.rest.shape)
     added = np.where(np.arange(len(fem.rest)) % 5 == 0, 0.2 * fem.mass, 0.0)

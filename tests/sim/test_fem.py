@@ -135,6 +135,27 @@ def test_compiled_kernel_matches_the_numba_reference(block):
     np.testing.assert_allclose(q1, q2, atol=1e-12)
 
 
+def rotor_block(dim: int, order: int):
+    """(fem, rotors) of the 1 x 0.4 (x 0.6) m block the step tests spin: linear or quadratic
+    elements, one rotor pushing up off-centre."""
+    from sdexp.sim.drone import build_rotors
+    from sdexp.sim.mesh.surface import boundary_faces
+    from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
+
+    if dim == 3:
+        pts, el = box_tets((4, 2, 3), (1.0, 0.4, 0.6), (-0.5, -0.2, -0.3))
+    else:
+        pts, el = box_tris((8, 3), (1.0, 0.4), (-0.5, -0.2))
+    faces = boundary_faces(el)
+    if order == 2:
+        pts, el = quadratic_mesh(pts, el)
+        faces = boundary_subfaces(faces, el)
+    fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
+    up = np.eye(dim)[1]
+    rotors = build_rotors(fem.rest, faces, [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
+    return fem, rotors
+
+
 @pytest.mark.parametrize("precision,tol,tol_speed", [("float64", 1e-10, 1e-9), ("float32", 2e-4, 1e-3)])
 @pytest.mark.parametrize("order", [1, 2])
 @pytest.mark.parametrize("dim", [2, 3])
@@ -147,22 +168,8 @@ def test_compiled_step_matches_the_numba_reference(dim, threads, order, precisio
     float32 the two kernels round differently (fused multiply-adds, summation order): their
     forces agree to 5e-7 (test_float32_kernels_agree), which 600 substeps with contacts and
     friction carry to 6e-5 of the block's size (the 2D quadratic block; 3D: 1e-6)."""
-    from sdexp.sim.drone import build_rotors
-    from sdexp.sim.mesh.surface import boundary_faces
-    from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
-
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)
-    if dim == 3:
-        pts, el = box_tets((4, 2, 3), (1.0, 0.4, 0.6), (-0.5, -0.2, -0.3))
-    else:
-        pts, el = box_tris((8, 3), (1.0, 0.4), (-0.5, -0.2))
-    faces = boundary_faces(el)
-    if order == 2:
-        pts, el = quadratic_mesh(pts, el)
-        faces = boundary_subfaces(faces, el)
-    fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
-    up = np.eye(dim)[1]
-    rotors = build_rotors(fem.rest, faces, [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
+    fem, rotors = rotor_block(dim, order)
     lo, hi = np.full(dim, -0.1), np.full(dim, 2.0)
     lo[0] = 0.55  # a wall the block slides into
     rng = np.random.default_rng(7)
@@ -197,22 +204,8 @@ def test_compiled_step_without_contacts_matches_the_numba_reference(dim, threads
     the test above, with ground and a box, does not reach): a spun block with pinned vertices,
     a rotor, gravity, added inertia, with and without deformation damping, against the numba
     reference to 1e-10; and two compiled bodies stepped alike are bitwise equal."""
-    from sdexp.sim.drone import build_rotors
-    from sdexp.sim.mesh.surface import boundary_faces
-    from sdexp.sim.physics.quadratic import boundary_subfaces, quadratic_mesh
-
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)
-    if dim == 3:
-        pts, el = box_tets((4, 2, 3), (1.0, 0.4, 0.6), (-0.5, -0.2, -0.3))
-    else:
-        pts, el = box_tris((8, 3), (1.0, 0.4), (-0.5, -0.2))
-    faces = boundary_faces(el)
-    if order == 2:
-        pts, el = quadratic_mesh(pts, el)
-        faces = boundary_subfaces(faces, el)
-    fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
-    up = np.eye(dim)[1]
-    rotors = build_rotors(fem.rest, faces, [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
+    fem, rotors = rotor_block(dim, order)
     rng = np.random.default_rng(11)
     v0 = _rigid_field(fem.rest, rng, dim) + 0.2 * rng.standard_normal(fem.rest.shape)
     added = np.where(np.arange(len(fem.rest)) % 5 == 0, 0.2 * fem.mass, 0.0)
