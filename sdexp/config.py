@@ -222,6 +222,10 @@ class ControlConfig:
     # sensor noise and its learned dynamics a fit to noise (the stiff drones: spread 1.4-1.6x the
     # noise; every soft drone 11x or more). 0: every bend (the paper). control/lqr.py regulated_states
     bend_snr: float = 3.0
+    # ours: Q's weight on the differences of bends the task asks to move together (the same
+    # non-zero target: the star's folding wings), q_s_alike x (s_a - s_b)^2 per pair; 0: the
+    # paper's diagonal Q. control/lqr.py alike_weights
+    q_s_alike: float = 0.0
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 
 
@@ -632,6 +636,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
     _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
     _check(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
+    _check(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
     f = cfg.flight
     _check(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
            "null or in (0, 180] deg")

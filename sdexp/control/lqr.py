@@ -160,3 +160,32 @@ def state_weights(sizes: dict[str, int], q_s: float, q_e: float, q_p: float, vel
     for gain in (np.full(sizes["n_s"], float(q_s)), q_e * per(sizes["n_e"], q_e_axes), q_p * per(sizes["dim"], q_p_axes)):
         parts += [gain, gain * velocity_scale]
     return np.concatenate(parts)
+
+
+def alike_groups(bend_targets) -> list[np.ndarray]:
+    """The bend channels a task moves together: per keyframe of ``bend_targets`` ((k, n_s), rad),
+    the channels sharing one non-zero target, each group (of two or more) once."""
+    groups: dict[tuple, np.ndarray] = {}
+    for target in np.atleast_2d(np.asarray(bend_targets, dtype=float)):
+        for value in np.unique(target[target != 0]):
+            members = np.flatnonzero(target == value)
+            if len(members) > 1:
+                groups[tuple(members)] = members
+    return list(groups.values())
+
+
+def alike_weights(sizes: dict[str, int], groups, q: float, velocity_scale: float) -> np.ndarray:
+    """Q's term q * sum over each group's pairs of (s_a - s_b)^2 (and velocity_scale x that on the
+    rates), a matrix over x = (s, s_dot, e, e_dot, p, p_dot): the cost of bends asked to move
+    together parting. Not in the paper: the star's two folding wings fold 15-50 deg apart under
+    the diagonal Q, and the less-folded wing meets a block (docs/results.md, "Obstacle")."""
+    n_s = int(sizes["n_s"])
+    n = 2 * (n_s + int(sizes["n_e"]) + int(sizes["dim"]))
+    W = np.zeros((n, n))
+    for members in groups:
+        k = len(members)
+        L = q * (k * np.eye(k) - np.ones((k, k)))   # the group's graph Laplacian: sum of (s_a - s_b)^2
+        W[np.ix_(members, members)] += L
+        W[np.ix_(n_s + members, n_s + members)] += velocity_scale * L
+    return W
+

@@ -55,7 +55,7 @@ from collections import deque
 
 import numpy as np
 
-from sdexp.control.lqr import lqr_gain
+from sdexp.control.lqr import alike_groups, alike_weights, lqr_gain
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.sensing import State
@@ -67,7 +67,7 @@ class RelinearizingLQR:
     def __init__(self, dyn: LearnedDynamics, q_diag: np.ndarray, r: float, kp: float, kd: float, n: int,
                  max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None,
                  dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None,
-                 regulated: np.ndarray | None = None):
+                 regulated: np.ndarray | None = None, q_alike: float = 0.0, velocity_scale: float = 1.0):
         if n < 1:
             raise ValueError("n must be >= 1")
         if feedforward and not relinearize:
@@ -82,7 +82,10 @@ class RelinearizingLQR:
         if self.regulated is not None:
             self._rates = np.intersect1d(self._rates, self.regulated)
         self.dyn, self.kp, self.kd, self.n, self.max_thrust = dyn, kp, kd, int(n), max_thrust
-        self.Q, self.R = np.diag(q_diag), r * np.eye(dyn.m)
+        self.Q0, self.R = np.diag(q_diag), r * np.eye(dyn.m)
+        self.Q = self.Q0
+        # Q's cost of bends the task moves together parting (lqr.alike_weights; 0: the paper's diagonal)
+        self.q_alike, self.velocity_scale = float(q_alike), float(velocity_scale)
         self.relinearize = relinearize
         self.dt = dt   # None: continuous Riccati (the paper); a step: the sampled-data gain
         self.x_op, self.u_op = x_op, u_op
@@ -98,6 +101,11 @@ class RelinearizingLQR:
     def reset(self, task: Task) -> None:
         self.task, self.k = task, 0
         self.timings = []
+        self.Q = self.Q0
+        if self.q_alike > 0:
+            sizes = {"n_s": self.dyn.n_s, "n_e": self.dyn.n_e, "dim": self.dyn.dim}
+            groups = alike_groups(task.bend_targets) if len(task.bend_targets) else []
+            self.Q = self.Q0 + alike_weights(sizes, groups, self.q_alike, self.velocity_scale)
         self.u = self.u0.copy()
         self.u_oper = self.u.copy()
         self.u_ff = None

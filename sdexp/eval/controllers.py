@@ -45,7 +45,8 @@ def ours(cfg, dyn, max_thrust: float, **kw) -> RelinearizingLQR:
     regulated = regulated_states(sizes, getattr(dyn, "bend_spread", None), noise, float(c.bend_snr))
     return RelinearizingLQR(dyn, q, c.r, c.kp, c.kd, c.n, max_thrust, dt=riccati_step(cfg),
                             feedforward=bool(c.feedforward), waypoint_max=c.waypoint_max,
-                            regulated=None if len(regulated) == len(q) else regulated, **kw)
+                            regulated=None if len(regulated) == len(q) else regulated,
+                            q_alike=float(c.q_s_alike), velocity_scale=float(c.velocity_scale), **kw)
 
 
 def state_sizes_of(dyn) -> dict[str, int]:

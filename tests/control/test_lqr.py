@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from sdexp.control.lqr import LqrFailure, controllable_basis, lqr_gain, regulated_states, state_weights
+from sdexp.control.lqr import (LqrFailure, alike_groups, alike_weights, controllable_basis, lqr_gain,
+                               regulated_states, state_weights)
 
 DOUBLE_INTEGRATOR = (np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]))
 
@@ -252,3 +253,37 @@ def test_a_gain_on_some_states_is_their_subsystems_gain_and_zero_elsewhere():
     assert K[0, 0] == 0.0
     np.testing.assert_allclose(K[:, 1:], analytic_double_integrator_gain(100.0, 100.0, 2.0), rtol=1e-9)
     np.testing.assert_array_equal(lqr_gain(A, B, Q, R, states=np.arange(3)), full)
+
+
+def test_alike_groups_are_the_bends_one_keyframe_moves_to_one_value():
+    a, b = 0.3, 0.5
+    groups = alike_groups([[0, 0, 0, 0, 0], [a, 0, a, b, 0], [a, 0, a, b, b]])
+    assert sorted(g.tolist() for g in groups) == [[0, 2], [3, 4]]   # [3] alone is no group; [0, 2] once
+    assert alike_groups([[0.0, 0.0, 0.0]]) == [] and alike_groups(np.zeros((0, 3))) == []
+
+
+def test_alike_weights_cost_the_parting_of_bends_and_nothing_else():
+    sizes, q, vs = {"n_s": 4, "n_e": 3, "dim": 3}, 7.0, 0.5
+    W = alike_weights(sizes, [np.array([0, 2, 3])], q, vs)
+    x = np.random.default_rng(0).normal(size=len(W))
+    s, sd = x[:4], x[4:8]
+    pairs = [(0, 2), (0, 3), (2, 3)]
+    expect = q * sum((s[i] - s[j]) ** 2 for i, j in pairs) + vs * q * sum((sd[i] - sd[j]) ** 2 for i, j in pairs)
+    assert x @ W @ x == pytest.approx(expect, rel=1e-12)
+    assert np.all(W[8:] == 0) and np.all(W[:, 8:] == 0) and np.all(W[1] == 0)   # e, p, and bend 1 untouched
+    np.testing.assert_array_equal(W, W.T)
+
+
+@pytest.mark.parametrize("q, q_alike, r", [(100.0, 30.0, 10.0), (1.0, 4.0, 0.5)])
+def test_the_alike_weight_stiffens_the_differential_bend_mode_alone(q, q_alike, r):
+    # two bends, each a double integrator with its own input: in the basis of common and
+    # differential modes, (s1 + s2) / sqrt 2 keeps the gain of weight q and (s1 - s2) / sqrt 2 gets
+    # that of q + 2 q_alike (q_alike (s1 - s2)^2 = 2 q_alike d^2), rates alike (velocity_scale 1)
+    A = np.block([[np.zeros((2, 2)), np.eye(2)], [np.zeros((2, 4))]])
+    B = np.vstack([np.zeros((2, 2)), np.eye(2)])
+    Q = q * np.eye(4) + alike_weights({"n_s": 2, "n_e": 0, "dim": 0}, [np.array([0, 1])], q_alike, 1.0)
+    K = lqr_gain(A, B, Q, r * np.eye(2))
+    c, d = np.array([1.0, 1.0]) / np.sqrt(2), np.array([1.0, -1.0]) / np.sqrt(2)
+    for mode, weight in ((c, q), (d, q + 2 * q_alike)):
+        gain = mode @ K @ np.kron(np.eye(2), mode[:, None])     # (angle, rate) gain of that mode
+        np.testing.assert_allclose(gain, analytic_double_integrator_gain(weight, weight, r)[0], rtol=1e-8)
