@@ -104,8 +104,7 @@ class RelinearizingLQR:
         self.Q = self.Q0
         if self.q_alike > 0:
             sizes = {"n_s": self.dyn.n_s, "n_e": self.dyn.n_e, "dim": self.dyn.dim}
-            groups = alike_groups(task.bend_targets) if len(task.bend_targets) else []
-            self.Q = self.Q0 + alike_weights(sizes, groups, self.q_alike, self.velocity_scale)
+            self.Q = self.Q0 + alike_weights(sizes, alike_groups(task.bend_targets), self.q_alike, self.velocity_scale)
         self.u = self.u0.copy()
         self.u_oper = self.u.copy()
         self.u_ff = None

@@ -413,14 +413,14 @@ def test_ours_weighs_the_parting_of_the_bends_a_task_moves_together(q_alike):
     from sdexp.control.lqr import alike_weights
     from sdexp.eval.controllers import ours
     from tests.conftest import make_config
-    cfg = make_config(f"control.q_s_alike={q_alike}", "noise=none")
+    cfg = make_config(f"control.q_s_alike={q_alike}", "control.velocity_scale=0.5", "noise=none")
     dyn = PlanarCopter(True, n_s=3)
     ctl = ours(cfg, dyn, TMAX)
-    diagonal = np.diag(weights(dyn))
+    diagonal = np.diag(state_weights({"n_s": 3, "n_e": 1, "dim": 2}, 100.0, 100.0, 100.0, 0.5))
     together = Task(start=np.zeros(2), target=np.zeros(2), seconds=1.0, n_s=3, bend_times=[0.0, 0.5],
                     bend_targets=[[0, 0, 0], [0.4, 0.0, 0.4]])
     ctl.reset(together)
-    expect = diagonal + alike_weights({"n_s": 3, "n_e": 1, "dim": 2}, [np.array([0, 2])], q_alike, 1.0)
+    expect = diagonal + alike_weights({"n_s": 3, "n_e": 1, "dim": 2}, [np.array([0, 2])], q_alike, 0.5)
     np.testing.assert_allclose(ctl.Q, expect)
     ctl.reset(Task(start=np.zeros(2), target=np.zeros(2), seconds=1.0, n_s=3))   # no bend target: the diagonal
     np.testing.assert_array_equal(ctl.Q, diagonal)
