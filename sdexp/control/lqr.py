@@ -129,6 +129,11 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, dt: flo
             raise LqrFailure(f"{first}; on the controllable subspace: {err}") from err
 
 
+def state_length(sizes: dict[str, int]) -> int:
+    """The length of x = (s, s_dot, e, e_dot, p, p_dot)."""
+    return 2 * (int(sizes["n_s"]) + int(sizes["n_e"]) + int(sizes["dim"]))
+
+
 def regulated_states(sizes: dict[str, int], bend_spread, angle_noise: float, snr: float) -> np.ndarray:
     """Indices of x = (s, s_dot, e, e_dot, p, p_dot) the LQR regulates: every attitude and position
     channel, and the bends (with their rates) whose spread in the training data, ``bend_spread``
@@ -138,8 +143,7 @@ def regulated_states(sizes: dict[str, int], bend_spread, angle_noise: float, snr
     fit has unstable or barely reachable bend modes and the LQR answers them with gains of
     200-500 N/rad, saturated alternating thrust. snr = 0 or no spread known: every channel."""
     n_s = int(sizes["n_s"])
-    n = 2 * (n_s + int(sizes["n_e"]) + int(sizes["dim"]))
-    keep = np.ones(n, bool)
+    keep = np.ones(state_length(sizes), bool)
     if snr > 0 and bend_spread is not None and n_s:
         noisy = np.asarray(bend_spread, dtype=float) < snr * angle_noise
         keep[:n_s] &= ~noisy
@@ -179,8 +183,7 @@ def alike_weights(sizes: dict[str, int], groups, q: float, velocity_scale: float
     rates), a matrix over x = (s, s_dot, e, e_dot, p, p_dot): the cost of bends asked to move
     together parting. Not in the paper: the star's two folding wings fold 15-50 deg apart under
     the diagonal Q, and the less-folded wing meets a block (docs/results.md, "Obstacle")."""
-    n_s = int(sizes["n_s"])
-    n = 2 * (n_s + int(sizes["n_e"]) + int(sizes["dim"]))
+    n_s, n = int(sizes["n_s"]), state_length(sizes)
     W = np.zeros((n, n))
     for members in groups:
         k = len(members)
@@ -188,4 +191,3 @@ def alike_weights(sizes: dict[str, int], groups, q: float, velocity_scale: float
         W[np.ix_(members, members)] += L
         W[np.ix_(n_s + members, n_s + members)] += velocity_scale * L
     return W
-

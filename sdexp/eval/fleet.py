@@ -231,10 +231,20 @@ def job_config(cfg, name: str, seed: int, p: FleetParams):
                    model=replace(cfg.model, threads=1), sim=replace(cfg.sim, threads=1))
 
 
+def job_path(jobs_dir: Path, name: str, seed: int) -> Path:
+    return jobs_dir / f"{name}_seed{seed}.json"
+
+
+def write_job(path: Path, result: dict) -> None:
+    """A job's result, written whole (a resumed fleet reads it back instead of flying again)."""
+    from sdexp.files import atomic_write
+    text = json.dumps(result, indent=1, default=float)
+    atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
 def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -> dict:
     """One drone and seed: learn, fly every task under every controller; written to ``path``.
     Never raises for the drone's sake: a failure is the job's ``error``, with its phase."""
-    from sdexp.files import atomic_write
     from sdexp.eval.flights import Setup
 
     job_cfg = job_config(cfg, name, seed, p)
@@ -269,10 +279,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         result["error"] = f"{phase}: {type(err).__name__}: {err}".splitlines()[0][:500]
         result["traceback"] = traceback.format_exc()[-4000:]
     result["seconds"]["total"] = time.perf_counter() - t0
-
-    def write(tmp: Path) -> None:
-        tmp.write_text(json.dumps(result, indent=1, default=float))
-    atomic_write(Path(path), write)
+    write_job(Path(path), result)
     if report is not None:
         report(1)
     return result
@@ -296,7 +303,7 @@ def run(run: Run) -> dict:
     jobs_dir.mkdir(exist_ok=True)
     todo, results = [], {}
     for name, seed in _order(names, list(p.seeds)):
-        path = jobs_dir / f"{name}_seed{seed}.json"
+        path = job_path(jobs_dir, name, seed)
         if path.exists():
             results[(name, seed)] = json.loads(path.read_text())
         else:
@@ -357,7 +364,6 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
     ``deform_reach_deg``; resumed runs) get it from their cached drone, data and nets, written back
     to the job's file; nothing is flown again."""
     from sdexp.eval.flights import Setup
-    from sdexp.files import atomic_write
     from sdexp.sim.rigid.statics import deform_reach
 
     for (name, seed), res in results.items():
@@ -369,8 +375,7 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
             phys.update(model_at_hover(setup))
         if "deform_reach_deg" not in phys:
             phys["deform_reach_deg"] = deform_reach(setup.drone, setup.cfg.sim)
-        text = json.dumps(res, indent=1, default=float)
-        atomic_write(jobs_dir / f"{name}_seed{seed}.json", lambda tmp: tmp.write_text(text))
+        write_job(job_path(jobs_dir, name, seed), res)
 
 
 FLIGHT_COLUMNS = ("drone", "seed", "task", "controller", "survived", "survival_time", "failure", "seconds",

@@ -22,7 +22,7 @@ from sdexp.config import BoxConfig
 from sdexp.sim.physics import native
 from sdexp.sim.physics.integrator import Body
 
-from .test_fem import _rigid_field, rotor_block
+from .test_fem import spun_block
 
 BASE = "5babb13"   # the last commit with the scalar vertex loops (issue 25's base)
 ROOT = Path(__file__).resolve().parents[2]
@@ -82,11 +82,7 @@ def test_pinned_blocks_step_bitwise_as_the_base_commit(old, dim, threads, order,
     bitwise BASE's step."""
     old_body, old_lib = old
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)
-    fem, rotors = rotor_block(dim, order)
-    rng = np.random.default_rng(11)
-    v0 = _rigid_field(fem.rest, rng, dim) + 0.2 * rng.standard_normal(fem.rest.shape)
-    added = np.where(np.arange(len(fem.rest)) % 5 == 0, 0.2 * fem.mass, 0.0)
-    pinned = np.flatnonzero(fem.rest[:, 0] < -0.45)[:3]
+    fem, rotors, v0, added, pinned = spun_block(dim, order)
     for ground in (None, -0.201):   # 1 mm under the block
         bodies = [cls(fem, threads, rotors, ground=ground, friction=0.5, pinned=pinned, added_mass=added)
                   for cls in (old_body, Body)]

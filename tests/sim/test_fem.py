@@ -156,6 +156,17 @@ def rotor_block(dim: int, order: int):
     return fem, rotors
 
 
+def spun_block(dim: int, order: int):
+    """rotor_block, spun: (fem, rotors, v0, added, pinned) with a rigid spin plus noise as the
+    start velocity, added inertia on every fifth vertex, three pinned vertices at one end."""
+    fem, rotors = rotor_block(dim, order)
+    rng = np.random.default_rng(11)
+    v0 = _rigid_field(fem.rest, rng, dim) + 0.2 * rng.standard_normal(fem.rest.shape)
+    added = np.where(np.arange(len(fem.rest)) % 5 == 0, 0.2 * fem.mass, 0.0)
+    pinned = np.flatnonzero(fem.rest[:, 0] < -0.45)[:3]
+    return fem, rotors, v0, added, pinned
+
+
 @pytest.mark.parametrize("precision,tol,tol_speed", [("float64", 1e-10, 1e-9), ("float32", 2e-4, 1e-3)])
 @pytest.mark.parametrize("order", [1, 2])
 @pytest.mark.parametrize("dim", [2, 3])
@@ -205,11 +216,7 @@ def test_compiled_step_without_contacts_matches_the_numba_reference(dim, threads
     a rotor, gravity, added inertia, with and without deformation damping, against the numba
     reference to 1e-10; and two compiled bodies stepped alike are bitwise equal."""
     threads = min(threads, numba.config.NUMBA_NUM_THREADS)
-    fem, rotors = rotor_block(dim, order)
-    rng = np.random.default_rng(11)
-    v0 = _rigid_field(fem.rest, rng, dim) + 0.2 * rng.standard_normal(fem.rest.shape)
-    added = np.where(np.arange(len(fem.rest)) % 5 == 0, 0.2 * fem.mass, 0.0)
-    pinned = np.flatnonzero(fem.rest[:, 0] < -0.45)[:3]
+    fem, rotors, v0, added, pinned = spun_block(dim, order)
     bodies = [Body(fem, threads, rotors, pinned=pinned, compiled=c, added_mass=added) for c in (True, True, False)]
     assert bodies[0]._step is not None, "the C kernels did not build"
     for body in bodies:
