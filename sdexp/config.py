@@ -259,7 +259,9 @@ class DiscrepancyConfig:
     min_gain: float = 0.02             # smallest held-out relative improvement that names an effect
     screen: int = 3                    # candidates refined and tested on held-out flights
     max_effects: int = 2               # effects added one after another while the residual remains
-    floor_flights: int = 8             # nominal simulated flights that calibrate the noise floor
+    # nominal simulated flights that calibrate the noise floor; null: as many as the unexplained
+    # test needs on this drone (workflow.floor_flight_count: 8 or more, by its channel count)
+    floor_flights: Optional[int] = None
     unexplained_ratio: float = 1.2     # a channel's residual / noise floor above which, if significant over
                                        # held-out flights and replicated on training flights, it is unexplained
     second_effect_ratio: float = 1.5   # held-out loss / the floor's above which another effect is sought
@@ -656,7 +658,8 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(0 < q.alpha < 1, "discrepancy.alpha", q.alpha, "in (0, 1)")
     _check(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",
            (q.min_gain, q.screen, q.max_effects), "min_gain >= 0, screen >= 1, max_effects >= 1")
-    _check(q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights, ">= 1")
+    _check(q.floor_flights is None or q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights,
+           ">= 1 or null (as many as the unexplained test needs)")
     _check(0 < q.explained_enough <= 1, "discrepancy.explained_enough", q.explained_enough, "in (0, 1]")
     _check(q.unexplained_ratio >= 1 and q.second_effect_ratio >= 1, "discrepancy.unexplained_ratio/second_effect_ratio",
            (q.unexplained_ratio, q.second_effect_ratio), ">= 1 each (multiples of the noise floor)")

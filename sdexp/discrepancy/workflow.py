@@ -62,6 +62,30 @@ def model_key(drone_cfg, sim_cfg, noise_cfg) -> dict:
     return {"drone": config_key(drone_cfg), "sim": config_key(sim_cfg), "noise": config_key(noise_cfg)}
 
 
+# the floor flights when discrepancy.floor_flights is null: at least the bench's 8, and more where
+# the unexplained test (a permutation test of held-out against floor flights, Bonferroni over the
+# channels) could not otherwise reach its level
+LEAST_FLOOR_FLIGHTS = 8
+
+
+def floor_needed(held: int, channels: int, alpha: float, least: int = 1) -> int:
+    """The fewest floor flights (at least ``least``) with which the permutation test of ``held``
+    held-out flights can give p <= alpha / channels: its smallest p is 1 / C(held + floor, held)."""
+    return next(f for f in range(max(1, least), 100_000) if comb(held + f, held) * alpha >= channels)
+
+
+def floor_flight_count(drone, dcfg) -> int:
+    """discrepancy.floor_flights, or where it is null the count the unexplained test needs on this
+    drone's channels with the held-out share of discrepancy.record.flights (the flight set
+    ``experiment=record`` writes): 8 on the leaf (20 channels), 9 on the flower (28)."""
+    if dcfg.floor_flights is not None:
+        return int(dcfg.floor_flights)
+    from sdexp.discrepancy.logs import channel_names
+    _, held = split_flights(int(dcfg.record.flights), float(dcfg.holdout))
+    channels = len(channel_names(drone.dim, drone.layout.n_s))
+    return floor_needed(len(held), channels, float(dcfg.alpha), LEAST_FLOOR_FLIGHTS)
+
+
 def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: str, seed: int = 777_000):
     """Residuals of the nominal simulator on ``floor_flights`` nominal simulated flights (the
     record manoeuvres, the configured noise), cached. Returns (r_floor, Windows-like)."""
@@ -72,11 +96,11 @@ def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: s
     h, stride, hist = steps_of(dcfg, dt, history_of(drone, dcfg))
     rec = dcfg.record
     payload = {**model_key(drone_cfg, sim_cfg, noise_cfg), "record": config_key(rec), "h": h, "stride": stride,
-               "hist": hist, "average": int(dcfg.start_average), "flights": int(dcfg.floor_flights), "seed": seed}
+               "hist": hist, "average": int(dcfg.start_average), "flights": floor_flight_count(drone, dcfg), "seed": seed}
 
     def make():
         with tempfile.TemporaryDirectory() as tmp:
-            record_flights(drone, sim_cfg, noise_cfg, Path(tmp), int(dcfg.floor_flights), rec.seconds,
+            record_flights(drone, sim_cfg, noise_cfg, Path(tmp), payload["flights"], rec.seconds,
                            rec.manoeuvres, seed, rec.height, rec.ground, rec.amplitude)
             logs = read_logs(tmp, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim)
         w = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
@@ -130,9 +154,26 @@ def naming_shortfall(n_flights: int, holdout: float, floor_flights: int) -> str 
             f"{MIN_FLOOR_FLIGHTS}; an effect that fits is reported as not significant, not named")
 
 
+class Laps:
+    """Wall seconds and simulator rollouts (window sets run, ``Predictor.rollouts``) of the
+    workflow's phases, one after another: ``lap(name)`` closes the phase that ends now, logs it and
+    keeps it for report.json's ``phases``: where a user's wait goes."""
+
+    def __init__(self, log):
+        self.log, self.pred, self.phases = log, None, {}
+        self._t, self._r = time.perf_counter(), 0
+
+    def lap(self, name: str) -> None:
+        t, r = time.perf_counter(), self.pred.rollouts if self.pred is not None else 0
+        self.phases[name] = {"seconds": t - self._t, "rollouts": r - self._r}
+        self.log(f"discrepancy: {name}: {t - self._t:.1f} s, {r - self._r} rollouts")
+        self._t, self._r = t, r
+
+
 def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: Path, cache_dir: str,
                  seed: int = 0, plots: bool = True, log=print) -> dict:
     t0 = time.perf_counter()
+    laps = Laps(log)
     out_dir = Path(out_dir)
     logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim,
                      max_thrust=drone.max_thrust)
@@ -151,17 +192,18 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history (or "
                         f"start_average rows) + horizon ({(lead + h + 1) * dt:g} s)")
     bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
+    laps.lap(f"logs read, bend map and noise floor ({floor_flight_count(drone, dcfg)} nominal flights; cached)")
     sigma = noise_floor(r_floor)
     floor_w = window_loss(r_floor, sigma)
     train_ids, held_ids = split_flights(len(logs.flights), dcfg.holdout)
-    shortfall = naming_shortfall(len(logs.flights), float(dcfg.holdout), int(dcfg.floor_flights))
+    shortfall = naming_shortfall(len(logs.flights), float(dcfg.holdout), floor_flight_count(drone, dcfg))
     if shortfall is not None:
         log(f"discrepancy: {shortfall}")
     train_all, held = subset(w_all, train_ids), subset(w_all, held_ids)
     # the fits estimate a few parameters each: a thinned training set does, and every rollout
     # of a candidate costs in proportion to it
     train = thin(train_all, int(dcfg.fit_windows))
-    pred = Predictor(drone, sim_cfg, noise_cfg, bend)
+    pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend)
     rng = np.random.default_rng(seed)
 
     # 1. localize
@@ -183,12 +225,14 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         return unexplained_channels(ex(r_he, w_he), ex(r_tr, w_tr), dcfg.unexplained_ratio, dcfg.alpha)
 
     n_floor = len(np.unique(w_floor.flight_of))
-    if 1 / comb(len(held_ids) + n_floor, len(held_ids)) > dcfg.alpha / len(logs.channels):
+    need = floor_needed(len(held_ids), len(logs.channels), float(dcfg.alpha))
+    if n_floor < need:
         log(f"discrepancy: {len(held_ids)} held-out and {n_floor} floor flights are too few for the unexplained "
             f"test to reach alpha / channels = {dcfg.alpha / len(logs.channels):.4f}: a gap no candidate closes "
-            f"will be answered none (give 8 flights and discrepancy.floor_flights >= 8)")
+            f"will be answered none (give discrepancy.floor_flights >= {need}, or null to size it by itself)")
     hot = unexplained_cell(table, left_over(r_train_all, train_all, r_held, held), dcfg.unexplained_ratio,
                            dcfg.alpha)
+    laps.lap("localize")
 
     # 2. name, one effect at a time
     base, accepted, rounds = [], [], []
@@ -198,6 +242,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     for rnd in range(int(dcfg.max_effects)):
         remaining = [c for c in cands if c.name not in {f.name for f in accepted}]
         fits = [linear_fit(c, pred, train, sigma, cur_train, base, rng) for c in remaining]
+        laps.lap(f"round {rnd + 1}: linear fits of {len(remaining)} candidates")
         L_train = float(np.mean((cur_train / sigma) ** 2))
         # screening by the linear model's training loss; a candidate whose rollout does not
         # beat the nominal training loss (its linearisation was optimistic: stiffness changes
@@ -240,6 +285,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
                 if "steady_held_w" not in f.evidence:
                     drift(f)   # polish moved it and scored it steady
             v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+        laps.lap(f"round {rnd + 1}: the screened candidates refined and tested")
         rounds.append({"round": rnd + 1, "verdict": v, "ranking": _jsonable(ranking), "z_threshold": float(z),
                        "held_loss_nominal": float(np.mean(cur_held_w))})
         change = f"-> {best.held_loss:.3f}" if best else "(no candidate accepted)"
@@ -257,6 +303,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         # what the fitted simulator predicts: a drifting wind at its mean (its gusts are random)
         cur_held_w = best.evidence.get("steady_held_w", best.held_w)
         cur_train = pred.residual(train, base)
+        laps.lap(f"round {rnd + 1}: {best.name} polished and added")
         # seek another effect only while the held-out loss is well above the floor's and a
         # channel is left above it (held out, replicated on training flights): close to the
         # floor, what is left is the named effect's imperfect fit (a payload lumped on other
@@ -310,6 +357,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
                       f"{drone.name}: the push per window that the simulator"
                       f"{' with ' + ', '.join(f.name for f in accepted) if accepted else ''} misses")
 
+    laps.lap("gusts and push")
+
     # 3. add
     fitted_effects = [e for f in accepted for e in f.effects]
     sim_fitted = asdict(sim_cfg)
@@ -326,6 +375,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     if plots:
         overlay(held, r_held, cur_held, gap, out_dir / "overlay.png", dt)
     gap_before, gap_after = L_before - floor_L, L_after - floor_L
+    laps.lap("the fitted simulator, the gap and the plots")
     report = {
         "drone": drone.name, "measured": str(logs.folder), "flights": len(logs.flights),
         "train_flights": [logs.flights[i].name for i in train_ids],
@@ -346,7 +396,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
                 "gap_before": gap_before, "gap_after": gap_after,
                 "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},
-        "rounds": rounds, "rollouts": pred.rollouts, "seconds": time.perf_counter() - t0,
+        "rounds": rounds, "rollouts": pred.rollouts, "seconds": time.perf_counter() - t0, "phases": laps.phases,
         "sim_fitted": str(out_yaml),
     }
     atomic_write(out_dir / "report.json", lambda tmp: tmp.write_text(json.dumps(_jsonable(report), indent=2)))

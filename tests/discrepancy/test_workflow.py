@@ -41,6 +41,13 @@ def test_hidden_payload_is_named_added_and_the_gap_shrinks(tmp_path, small_cfg, 
         assert (tmp_path / "out" / name).exists()
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
     assert saved["verdict"] == rep["verdict"] and saved["rounds"][0]["ranking"][0]["candidate"] == "payload"
+    # where the time went: the phases in order, together the whole run, the rollouts all counted
+    phases = saved["phases"]
+    assert list(phases)[:3] == ["logs read, bend map and noise floor (3 nominal flights; cached)", "localize",
+                                "round 1: linear fits of 4 candidates"]
+    assert sum(p["seconds"] for p in phases.values()) == pytest.approx(saved["seconds"], rel=0.05, abs=0.5)
+    assert sum(p["rollouts"] for p in phases.values()) == saved["rollouts"]
+    assert "round 1: payload polished and added" in phases
     # the override is a simulator config the simulator loads, with the fitted effect in it
     sim_cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), OmegaConf.load(rep["sim_fitted"])))
     sim = Simulator(leaf, sim_cfg, small_cfg.noise)
