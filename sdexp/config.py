@@ -226,6 +226,10 @@ class ControlConfig:
     # non-zero target: the star's folding wings), q_s_alike x (s_a - s_b)^2 per pair; 0: the
     # paper's diagonal Q. control/lqr.py alike_weights
     q_s_alike: float = 0.0
+    # s: every controller reads the decomposed state through a first-order low-pass of this time
+    # constant, so that the rate feedback stops pumping a soft elastic mode the IMUs sit on (the
+    # rainbow's 5 Hz mode, control/lowpass.py); 0: the state as read (the paper)
+    lowpass: float = 0.0
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 
 
@@ -639,6 +643,7 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
     _check(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
     _check(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
+    _check(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
     f = cfg.flight
     _check(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
            "null or in (0, 180] deg")

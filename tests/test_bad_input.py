@@ -64,6 +64,7 @@ def rejected(*overrides) -> str:
     ("control.waypoint_max=0", "control.waypoint_max", "> 0 or null"),
     ("control.bend_snr=-1", "control.bend_snr", ">= 0"),
     ("control.q_s_alike=-1", "control.q_s_alike", ">= 0"),
+    ("control.lowpass=-0.01", "control.lowpass", "in [0, 1] s"),
     ("control.q_p_axes=[1,1]", "control.q_p_axes", "3 numbers > 0"),
     ("control.q_p_axes=[1,1,-2]", "control.q_p_axes", "one per axis"),
     ("control.q_e_axes=[1,1]", "control.q_e_axes", "one per Euler angle"),

@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from sdexp.control.controller import Controller
+from sdexp.control.lowpass import LowPassed
 from sdexp.control.lqr import regulated_states, state_weights
 from sdexp.control.neural import NeuralController, load_or_train_policy
 from sdexp.control.relinearizing import RelinearizingLQR
@@ -88,7 +89,10 @@ CONTROLLERS: dict[str, Callable[..., Controller]] = {
 
 
 def build(name: str, cfg, sim: Simulator, dyn=None, data=None, trained=None, progress: bool = True) -> Controller:
-    """The controller registered as ``name``, for a flight of ``sim``."""
+    """The controller registered as ``name``, for a flight of ``sim``; with ``control.lowpass`` > 0
+    it reads the state through that low-pass (every controller alike)."""
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}: choose from {', '.join(CONTROLLERS)}")
-    return CONTROLLERS[name](cfg, sim, dyn=dyn, data=data, trained=trained, progress=progress)
+    controller = CONTROLLERS[name](cfg, sim, dyn=dyn, data=data, trained=trained, progress=progress)
+    tau = float(cfg.control.lowpass)
+    return LowPassed(controller, tau, float(cfg.sim.control_dt)) if tau > 0 else controller
