@@ -122,7 +122,7 @@ def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, ca
            "held_loss_after": rep["gap"]["held_loss_after"], "rollouts": rep["rollouts"],
            "seconds": time.perf_counter() - t0, "true_effects": json.dumps(sc["effects"]),
            "fitted": json.dumps(rep["effects"])}
-    row.update(param_error(sc, rep))
+    row.update(param_fit(sc, rep))
     row.update(oracle_gap(sc, folder, drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir))
     if report:
         report(1)
@@ -160,22 +160,28 @@ def oracle_gap(sc: dict, folder: Path, drone, drone_cfg, sim_cfg, noise_cfg, dcf
             "oracle_gap_reduction": float(min(1.0, (L_nom - L_fit) / closable)) if closable > 0 else None}
 
 
-def param_error(sc: dict, rep: dict) -> dict:
-    """Relative error of the strength parameter of the first true effect, when it was named."""
+def param_fit(sc: dict, rep: dict) -> dict:
+    """The strength parameter of the first true effect, when it was named: its relative error,
+    and whether the fit's interval covers the truth (a vector: every component; the wrong rotor
+    of a thrust loss: no)."""
+    out = {"param_error": None, "param_covered": None}
     if sc["kind"] not in ("single", "combo") or not rep["effects"]:
-        return {"param_error": None}
+        return out
     truth = sc["effects"][0]
     fitted = next((e for e in rep["effects"] if e["name"] == truth["name"]), None)
     if fitted is None:
-        return {"param_error": None}
+        return out
     key = LIBRARY[truth["name"]].bench_strengths[0]
     p = fitted["params"]
-    if truth["name"] in ("wind", "imu_bias"):
-        t, f = np.asarray(truth[key], float), np.asarray(p[key], float)
-        return {"param_error": float(np.linalg.norm(f - t) / np.linalg.norm(t))}
     if truth["name"] == "thrust_loss" and p.get("rotor") != truth["rotor"]:
-        return {"param_error": 1.0}
-    return {"param_error": float(abs(p[key] - truth[key]) / abs(truth[key]))}
+        return {"param_error": 1.0, "param_covered": False}
+    t, f = np.asarray(truth[key], float), np.asarray(p[key], float)
+    out["param_error"] = float(np.linalg.norm(f - t) / np.linalg.norm(t))   # |.| for a scalar
+    interval = (fitted.get("params_interval") or {}).get(key)
+    if interval is not None:
+        lo, hi = (np.asarray(b, float) for b in interval)
+        out["param_covered"] = bool(np.all((lo <= t) & (t <= hi)))
+    return out
 
 
 def rescore_row(row: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, scen_dir: str, cache_dir: str, report=None) -> dict:
@@ -242,6 +248,11 @@ def summarize(table: pd.DataFrame) -> dict:
         "scenario_seconds_median": float(np.median(table.seconds)) if "seconds" in table else None,
         "scenario_seconds_total": float(np.sum(table.seconds)) if "seconds" in table else None,
         "median_param_error": float(np.nanmedian(single.param_error.astype(float))) if single.param_error.notna().any() else None,
+        # how often the named effect's 95% interval holds its true strength (a bench run before the
+        # intervals existed has no such column: None)
+        "param_interval_coverage": _share(single.get("param_covered")),
+        "per_effect_param_interval_coverage": {n: _share(g.get("param_covered")) for n, g in single.groupby("truth")
+                                               if _share(g.get("param_covered")) is not None},
         "per_effect_top1": {n: float(np.mean(g.top1 == n)) for n, g in single.groupby("truth")},
     }
     out["targets_met"] = {
@@ -251,8 +262,18 @@ def summarize(table: pd.DataFrame) -> dict:
         "unmodelled_honest>=0.8": out["unmodelled_honest"] is not None and out["unmodelled_honest"] >= 0.8,
         "null_false_positive_rate<=0.05": out["null_false_positive_rate"] is not None and out["null_false_positive_rate"] <= 0.05,
         "median_gap_reduction>=0.8": out["median_gap_reduction"] is not None and out["median_gap_reduction"] >= 0.8,
+        "param_interval_coverage>=0.8": (out["param_interval_coverage"] is not None
+                                         and out["param_interval_coverage"] >= 0.8),
     }
     return out
+
+
+def _share(flags) -> float | None:
+    """The share of True among the scored entries (None, NaN and empty cells are not scored)."""
+    if flags is None:
+        return None
+    scored = [bool(v) if not isinstance(v, str) else v == "True" for v in flags if v is not None and v == v and v != ""]
+    return float(np.mean(scored)) if scored else None
 
 
 def confusion(table: pd.DataFrame) -> pd.DataFrame:

@@ -5,7 +5,13 @@ Fit: theta minimises the noise-floor-normalised squared residuals over the train
 by a finite-difference Jacobian (one rollout per parameter, all windows; about the best point
 of the candidate's scan where it has one) and bounded linear least squares, then a chord
 Gauss-Newton step for the candidates that pass screening.
-Uncertainty: bootstrap over training windows of the final linear step.
+Uncertainty: bootstrap over training flights (windows when fewer than three) of the linear step
+(100 draws with replacement):
+``theta_std`` their spread, and ``params_interval`` the central 95% of each physical parameter
+over the draws, each draw the final theta moved by one bootstrap solution's deviation from the
+full-sample one (a basic bootstrap about the refined fit). It holds the noise's share of the
+uncertainty, not a bias of the fit itself (an effect's parameters that trade off against each
+other, a linearisation that stops short): the bench scores how often it covers the truth.
 
 Name: for each refined candidate, the held-out per-window loss drop d_w = L_nominal,w -
 L_candidate,w. A candidate passes when mean(d) exceeds z * SE (z from a Bonferroni-corrected
@@ -39,6 +45,7 @@ class Fit:
     train_loss: float = np.nan    # from a rollout (refined candidates only)
     held_loss: float = np.nan
     held_w: np.ndarray | None = None   # per held-out window loss
+    spread: np.ndarray | None = None   # (draws, p) bootstrap solutions minus the full-sample one
     refined: bool = False
     flags: list = field(default_factory=list)   # why the fit is not physical (Candidate.flags)
     evidence: dict = field(default_factory=dict)
@@ -93,9 +100,9 @@ def linear_fit(cand: Candidate, predictor, train, sigma, r_nom_train, base_effec
         if best is None or loss < best[0]:
             best = (loss, option, theta, J, R, np.zeros(p))
     loss, option, theta, J, R, centre = best
-    std = bootstrap_std(J, R, train.count, sigma.size, cand, rng, centre)
-    return Fit(cand.name, option, theta, std, cand.report(theta, option), cand.build(theta, option),
-               loss, evidence={"jacobian": J})
+    draws = bootstrap(J, R, train.count, sigma.size, cand, rng, centre, groups=getattr(train, "flight_of", None))
+    return Fit(cand.name, option, theta, np.std(draws, axis=0), cand.report(theta, option),
+               cand.build(theta, option), loss, spread=draws - (theta - centre), evidence={"jacobian": J})
 
 
 def _scan(cand: Candidate, roll, ref, sigma):
@@ -122,17 +129,52 @@ def _jacobian(cand: Candidate, roll, theta, r, sigma) -> np.ndarray:
     return np.stack([c / sigma for c in cols], axis=-1).reshape(-1, len(cols))
 
 
-def bootstrap_std(J, R, n_windows, per_window, cand, rng, centre, draws: int = 100) -> np.ndarray:
-    """Spread of the bounded linear solution (a step from ``centre``) over training windows
-    drawn with replacement."""
+def bootstrap(J, R, n_windows, per_window, cand, rng, centre, draws: int = 100, groups=None) -> np.ndarray:
+    """The bounded linear solution (a step from ``centre``) over training data drawn with
+    replacement: (draws, p). With ``groups`` (each window's flight) of at least three flights,
+    whole flights are drawn (a flight's windows share its noise and its effect's draws, so
+    they are not independent); else windows."""
     Jw = J.reshape(n_windows, per_window, -1)
     Rw = R.reshape(n_windows, per_window)
+    flights = None if groups is None else [np.flatnonzero(groups == g) for g in np.unique(groups)]
+    if flights is not None and len(flights) < 3:
+        flights = None
     out = []
     for _ in range(draws):
-        pick = rng.integers(0, n_windows, n_windows)
+        if flights is None:
+            pick = rng.integers(0, n_windows, n_windows)
+        else:
+            pick = np.concatenate([flights[i] for i in rng.integers(0, len(flights), len(flights))])
         out.append(_solve(Jw[pick].reshape(-1, J.shape[1]), Rw[pick].reshape(-1), cand.lower - centre,
                           cand.upper - centre))
-    return np.std(out, axis=0)
+    return np.array(out)
+
+
+LEVEL = 0.95   # the intervals' coverage
+
+
+def params_interval(fit: Fit, cand: Candidate, level: float = LEVEL) -> dict:
+    """Per physical parameter of the fit's report: [low, high] (vectors: per component), the
+    central ``level`` of the report over the bootstrap draws about the fitted theta (clipped to
+    the bounds). Measured quantities only: a chosen rotor (an integer) or a label has none."""
+    if fit.spread is None or not len(fit.spread):
+        return {}
+    reports = [cand.report(np.clip(fit.theta + d, cand.lower, cand.upper), fit.option) for d in fit.spread]
+    q = [50.0 * (1 - level), 50.0 * (1 + level)]
+    out = {}
+    for key, value in fit.params.items():
+        values = [r.get(key) for r in reports]
+        if not _measured(value) or not all(_measured(v) for v in values):
+            continue
+        low, high = np.percentile(np.array(values, dtype=float), q, axis=0)
+        out[key] = [low.tolist(), high.tolist()]
+    return out
+
+
+def _measured(v) -> bool:
+    """A float or a vector of floats (not a bool, an integer choice or a label)."""
+    a = np.asarray(v)
+    return a.dtype.kind == "f" and a.size > 0
 
 
 def refine(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effects) -> Fit:

@@ -31,7 +31,7 @@ import yaml
 from sdexp.cache import atomic_write, cached_arrays, config_key, key_of
 from sdexp.discrepancy import gusts, push
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
-from sdexp.discrepancy.fit import decide, linear_fit, polish, refine, window_loss
+from sdexp.discrepancy.fit import LEVEL, decide, linear_fit, params_interval, polish, refine, window_loss
 from sdexp.discrepancy.localize import (channel_excess, heatmap, localize, noise_floor, unexplained_cell,
                                         unexplained_channels)
 from sdexp.discrepancy.logs import read_logs
@@ -370,10 +370,17 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         + yaml.safe_dump(sim_fitted, default_flow_style=False, sort_keys=False, allow_unicode=True)))
 
     # 4. show
+    candidate_of = {c.name: c for c in cands}
+    effects = [{"name": f.name, "params": f.params, "params_interval": params_interval(f, candidate_of[f.name]),
+                "interval_level": LEVEL, "theta": f.theta.tolist(), "theta_names": candidate_of[f.name].params,
+                "theta_std": f.theta_std.tolist()} for f in accepted]
+    for e in effects:
+        log(f"discrepancy: {describe(e)}")
     gap = gap_table(r_held, cur_held, sigma, r_floor, logs.channels)
     atomic_write(out_dir / "gap.csv", lambda tmp: gap.to_csv(tmp, index=False))
     if plots:
-        overlay(held, r_held, cur_held, gap, out_dir / "overlay.png", dt)
+        overlay(held, r_held, cur_held, gap, out_dir / "overlay.png", dt,
+                "fitted: " + "; ".join(describe(e) for e in effects) if effects else "no effect named")
     gap_before, gap_after = L_before - floor_L, L_after - floor_L
     laps.lap("the fitted simulator, the gap and the plots")
     report = {
@@ -382,9 +389,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "held_out_flights": [logs.flights[i].name for i in held_ids],
         "windows": {"train": train_all.count, "fit": train.count, "held_out": held.count, "horizon_s": h * dt},
         "verdict": verdict,
-        "effects": [{"name": f.name, "params": f.params, "theta": f.theta.tolist(),
-                     "theta_names": next(c.params for c in cands if c.name == f.name),
-                     "theta_std": f.theta_std.tolist()} for f in accepted],
+        "effects": effects,
         "ties": ties,
         "not_significant": _jsonable(not_significant), "too_few_flights": shortfall,
         "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
@@ -403,6 +408,25 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     return report
 
 
+def describe(effect: dict) -> str:
+    """'payload: mass 0.29 (0.26-0.32), point [...]': each fitted number with its interval
+    (report.json's params_interval, the central interval_level of the bootstrap)."""
+    ival = effect.get("params_interval") or {}
+    num = lambda v: f"{v:.3g}"  # noqa: E731
+    parts = []
+    for key, value in effect["params"].items():
+        if key in ival and np.ndim(value) == 0:
+            lo, hi = ival[key]
+            parts.append(f"{key} {num(value)} ({num(lo)} to {num(hi)})")
+        elif key in ival:
+            lo, hi = ival[key]
+            parts.append(f"{key} [" + ", ".join(f"{num(v)} ({num(a)} to {num(b)})" for v, a, b in zip(value, lo, hi)) + "]")
+        else:
+            parts.append(f"{key} {value}")
+    level = effect.get("interval_level")
+    return f"{effect['name']}: " + ", ".join(parts) + (f" ({100 * level:.0f}% intervals)" if ival and level else "")
+
+
 def trimmed(w: np.ndarray, top: float = 0.1) -> float:
     """Mean of the window losses without the largest ``top`` fraction."""
     w = np.sort(np.asarray(w))
@@ -416,7 +440,7 @@ def gap_table(r_before, r_after, sigma, r_floor, channels) -> pd.DataFrame:
                          "ratio_before": b / np.maximum(f, 1e-12), "ratio_after": a / np.maximum(f, 1e-12)})
 
 
-def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float) -> None:
+def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float, title: str = "") -> None:
     """Measured vs nominal vs fitted predictions on the held-out windows of the channels the
     fit improved most, strung along time."""
     from sdexp.figures import pyplot, save_figure
@@ -435,6 +459,8 @@ def overlay(held, r_before, r_after, gap: pd.DataFrame, path, dt: float) -> None
         ax.set_ylabel(gap.channel[c], fontsize=8)
     axes[0, 0].legend(fontsize=7, ncol=3)
     axes[-1, 0].set_xlabel("held-out windows, strung together (s)")
+    if title:
+        fig.suptitle(title, fontsize=8, wrap=True)
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
 

@@ -36,6 +36,11 @@ def test_hidden_payload_is_named_added_and_the_gap_shrinks(tmp_path, small_cfg, 
     fitted = rep["effects"][0]
     assert fitted["params"]["mass"] == pytest.approx(0.3, rel=0.5)
     assert all(s >= 0 for s in fitted["theta_std"])
+    # the mass with its 95% interval, around the fit (the bench scores how often it holds the truth)
+    lo, hi = fitted["params_interval"]["mass"]
+    assert lo <= fitted["params"]["mass"] <= hi and hi > lo and fitted["interval_level"] == 0.95
+    assert "point" in fitted["params_interval"] and len(fitted["params_interval"]["point"][0]) == 3
+    print("payload interval", fitted["params"], fitted["params_interval"])
     assert rep["gap"]["gap_after"] < 0.5 * rep["gap"]["gap_before"]
     for name in ("localize.csv", "localize.png", "gap.csv", "overlay.png"):
         assert (tmp_path / "out" / name).exists()
@@ -83,20 +88,25 @@ def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg):
     assert m["per_effect_top1"]["thrust_loss"] == 1.0 and m["median_gap_reduction"] > 0.5
     assert (tmp_path / "confusion.png").exists() and (tmp_path / "scenarios.csv").exists()
     assert set(m["targets_met"]) == {"top1_accuracy>=0.9", "top1_with_library_answer>=0.9", "unmodelled_honest>=0.8",
-                                     "null_false_positive_rate<=0.05", "median_gap_reduction>=0.8", "wall_minutes<=30"}
+                                     "null_false_positive_rate<=0.05", "median_gap_reduction>=0.8", "wall_minutes<=30",
+                                     "param_interval_coverage>=0.8"}
 
 
 def test_summary_counts_ties_nulls_and_gap():
     import pandas as pd
     t = pd.DataFrame([
-        {"kind": "single", "truth": "a", "top1": "a", "ties": "", "verdict": "effect", "named": "a", "gap_reduction": 0.9, "oracle_gap_reduction": 0.9, "param_error": 0.1},
-        {"kind": "single", "truth": "b", "top1": "c", "ties": "b", "verdict": "tie", "named": "c", "gap_reduction": 0.5, "oracle_gap_reduction": 0.5, "param_error": np.nan},
+        {"kind": "single", "truth": "a", "top1": "a", "ties": "", "verdict": "effect", "named": "a", "gap_reduction": 0.9, "oracle_gap_reduction": 0.9, "param_error": 0.1, "param_covered": True},
+        {"kind": "single", "truth": "a", "top1": "a", "ties": "", "verdict": "effect", "named": "a", "gap_reduction": 0.9, "oracle_gap_reduction": 0.9, "param_error": 0.3, "param_covered": False},
+        {"kind": "single", "truth": "b", "top1": "c", "ties": "b", "verdict": "tie", "named": "c", "gap_reduction": 0.5, "oracle_gap_reduction": 0.5, "param_error": np.nan, "param_covered": None},
         {"kind": "null", "truth": "none", "top1": "none", "ties": "", "verdict": "none", "named": "", "gap_reduction": None, "oracle_gap_reduction": None, "param_error": np.nan},
         {"kind": "null", "truth": "none", "top1": "a", "ties": "", "verdict": "effect", "named": "a", "gap_reduction": None, "oracle_gap_reduction": None, "param_error": np.nan},
     ])
     m = summarize(t)
-    assert m["top1_accuracy"] == 0.5 and m["top1_or_tie_accuracy"] == 1.0
-    assert m["null_false_positive_rate"] == 0.5 and m["median_gap_reduction"] == pytest.approx(0.7)
+    assert m["top1_accuracy"] == pytest.approx(2 / 3) and m["top1_or_tie_accuracy"] == 1.0
+    assert m["null_false_positive_rate"] == 0.5 and m["median_gap_reduction"] == pytest.approx(0.9)
+    # coverage over the scored rows only (b was not named: no interval to score)
+    assert m["param_interval_coverage"] == 0.5 and m["per_effect_param_interval_coverage"] == {"a": 0.5}
+    assert summarize(t.drop(columns="param_covered"))["param_interval_coverage"] is None   # a bench from before
 
 
 def test_a_scan_finds_what_the_linearisation_at_zero_misses():
@@ -173,3 +183,25 @@ def test_strong_gusts_are_named_wind_by_their_drift(tmp_path, small_cfg, leaf):
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
     assert rep["effects"] and rep["effects"][0]["name"] == "wind"
     assert rep["gusts"]["gusty"]
+
+
+def test_intervals_are_the_bootstrap_central_share_of_each_measured_parameter():
+    """params_interval maps every bootstrap draw through the candidate's report: a scalar and a
+    vector get [low, high] per component at the 2.5 / 97.5 percentiles of the draws about the
+    fitted theta; a rotor index (a choice) gets none; the draws stay within the bounds."""
+    from sdexp.discrepancy.candidates import Candidate
+    from sdexp.discrepancy.fit import Fit, params_interval
+    from sdexp.discrepancy.workflow import describe
+
+    spread = np.linspace(-1.0, 1.0, 201)[:, None]   # deviations of 201 draws
+    report = lambda th, o: {"mass": float(th[0]), "point": [2 * float(th[0]), 0.0], "rotor": 3}  # noqa: E731
+    cand = Candidate("payload", ["m"], np.ones(1), np.array([0.0]), np.array([2.5]), lambda th, o: [], report)
+    fit = Fit("payload", None, np.array([2.0]), np.ones(1), report(np.array([2.0]), None), [], 0.0, spread=spread)
+    ival = params_interval(fit, cand)
+    assert set(ival) == {"mass", "point"}
+    # 2.0 + [-1, 1], clipped at the upper bound 2.5: the 2.5th percentile is 1.05, the 97.5th the bound
+    assert ival["mass"][0] == pytest.approx(1.05) and ival["mass"][1] == pytest.approx(2.5)
+    assert ival["point"][0] == pytest.approx([2.1, 0.0]) and ival["point"][1] == pytest.approx([5.0, 0.0])
+    text = describe({"name": "payload", "params": fit.params, "params_interval": ival, "interval_level": 0.95})
+    assert text == ("payload: mass 2 (1.05 to 2.5), point [4 (2.1 to 5), 0 (0 to 0)], rotor 3 (95% intervals)")
+    assert params_interval(Fit("x", None, np.zeros(1), np.zeros(1), {}, [], 0.0), cand) == {}
