@@ -190,6 +190,30 @@ def start_pose(drone, height: float) -> np.ndarray:
     return off
 
 
+def record_flight(sim, pilot: Pilot, i: int, seed: int, seconds: float, manoeuvres, height: float, ground: float,
+                  amplitude: float):
+    """Flight ``i`` of a recording seeded ``seed``: its plan, noise and effect draws from (seed, i)
+    alone, so the same flight can be flown again with other physics. Returns fly's rows."""
+    drone, dt = sim.drone, sim.cfg.control_dt
+    rng = np.random.default_rng([seed, i])
+    sim.rng = np.random.default_rng([seed, i, 1])
+    sim.reset(start_pose(drone, height), flight=i)   # the flight's random effects (gusts) drawn for flight i
+    pilot.reset()
+    home = sim.state(noisy=False).p
+    return fly(sim, pilot, plan_flight(drone, rng, seconds, dt, manoeuvres, home, ground, amplitude), dt)
+
+
+def manoeuvre_log(drone, sim_cfg, noise_cfg, effects: list, kind: str, seconds: float, seed: int, height: float,
+                  ground: float, amplitude: float) -> np.ndarray:
+    """The readings (rows in channel order) of flight 0 of a recording of one manoeuvre kind with
+    ``effects``: the same kind, seed and noise fly the same plan whatever the effects."""
+    from sdexp.sim.simulator import Simulator
+
+    sim = Simulator(drone, sim_cfg, noise_cfg, seed=seed, effects=effects)
+    pilot = Pilot(drone, sim.cfg.gravity, dt=sim.cfg.control_dt)
+    return record_flight(sim, pilot, 0, seed, seconds, [kind], height, ground, amplitude)[2]
+
+
 def record_flights(drone, sim_cfg, noise_cfg, out_dir: Path, flights: int, seconds: float,
                    manoeuvres, seed: int, height: float = 2.5, ground: float = 0.0,
                    amplitude: float = 0.3, effects=None, report=None, meta_extra=None) -> list[Path]:
@@ -207,14 +231,7 @@ def record_flights(drone, sim_cfg, noise_cfg, out_dir: Path, flights: int, secon
     pilot = Pilot(drone, sim.cfg.gravity, dt=dt)
     paths, failures = [], []
     for i in range(flights):
-        rng = np.random.default_rng([seed, i])
-        sim.rng = np.random.default_rng([seed, i, 1])
-        off = start_pose(drone, height)
-        sim.reset(off, flight=i)   # the flight's random effects (gusts) drawn for flight i
-        pilot.reset()
-        home = sim.state(noisy=False).p
-        segs = plan_flight(drone, rng, seconds, dt, manoeuvres, home, ground, amplitude)
-        t, u, y, failure = fly(sim, pilot, segs, dt)
+        t, u, y, failure = record_flight(sim, pilot, i, seed, seconds, manoeuvres, height, ground, amplitude)
         if failure is not None:
             failures.append(f"flight_{i:03d}: {failure.reason} at {failure.time:.2f} s")
         paths.append(write_flight(out_dir, f"flight_{i:03d}", t, u, y, drone.dim, drone.layout.n_s))

@@ -29,7 +29,7 @@ import pandas as pd
 import yaml
 
 from sdexp.cache import atomic_write, cached_arrays, config_key, key_of
-from sdexp.discrepancy import gusts, push
+from sdexp.discrepancy import gusts, push, separate
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
 from sdexp.discrepancy.fit import LEVEL, decide, linear_fit, params_interval, polish, refine, window_loss
 from sdexp.discrepancy.localize import (channel_excess, heatmap, localize, noise_floor, unexplained_cell,
@@ -238,7 +238,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     base, accepted, rounds = [], [], []
     held_nom_w = window_loss(r_held, sigma)
     cur_train, cur_held, cur_held_w = r_train, r_held, held_nom_w
-    verdict, ties = "none", []
+    verdict, ties, confusable = "none", [], []
     for rnd in range(int(dcfg.max_effects)):
         remaining = [c for c in cands if c.name not in {f.name for f in accepted}]
         fits = [linear_fit(c, pred, train, sigma, cur_train, base, rng) for c in remaining]
@@ -298,6 +298,9 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         accepted.append(best)
         if rnd == 0:
             verdict, ties = v, [t.name for t in tie]
+            confusable = _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcfg, seed, log)
+            if confusable:
+                laps.lap("round 1: what would separate the tied candidates")
         base = base + best.effects
         cur_held = best.evidence["held_residual"]
         # what the fitted simulator predicts: a drifting wind at its mean (its gusts are random)
@@ -391,6 +394,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "verdict": verdict,
         "effects": effects,
         "ties": ties,
+        "confusable": confusable,
         "not_significant": _jsonable(not_significant), "too_few_flights": shortfall,
         "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
         "remaining_above_floor": _jsonable(remaining_cell),
@@ -406,6 +410,26 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     }
     atomic_write(out_dir / "report.json", lambda tmp: tmp.write_text(json.dumps(_jsonable(report), indent=2)))
     return report
+
+
+def _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcfg, seed: int, log) -> list[dict]:
+    """For each candidate tied with the winner whose change to the held-out predictions reads
+    like the winner's (separate.alike >= separate.ALIKE): the cosine, each manoeuvre kind's
+    score and the advice (sdexp.discrepancy.separate)."""
+    out = []
+    change = lambda f: (cur_held - f.evidence["held_residual"]) / sigma  # noqa: E731
+    for t in tie:
+        cosine = separate.alike(change(best), change(t))
+        if cosine < separate.ALIKE:
+            continue
+        r = dcfg.record
+        scores = separate.manoeuvre_scores(drone, sim_cfg, noise_cfg, base + best.effects, base + t.effects,
+                                           sigma.mean(axis=0), float(r.seconds), int(seed), float(r.height),
+                                           float(r.ground), float(r.amplitude))
+        text = separate.advice(best.name, t.name, cosine, scores, r.manoeuvres)
+        log(f"discrepancy: {text}")
+        out.append({"candidates": [best.name, t.name], "cosine": cosine, "manoeuvre_scores": scores, "advice": text})
+    return out
 
 
 def describe(effect: dict) -> str:
