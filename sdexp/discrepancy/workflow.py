@@ -299,7 +299,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         if rnd == 0:
             verdict, ties = v, [t.name for t in tie]
             confusable = _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcfg, seed, log)
-            if confusable:
+            if any(c["alike"] for c in confusable):
                 laps.lap("round 1: what would separate the tied candidates")
         base = base + best.effects
         cur_held = best.evidence["held_residual"]
@@ -413,14 +413,17 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
 
 
 def _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcfg, seed: int, log) -> list[dict]:
-    """For each candidate tied with the winner whose change to the held-out predictions reads
-    like the winner's (separate.alike >= separate.ALIKE): the cosine, each manoeuvre kind's
+    """For each candidate tied with the winner: the cosine of the two changes to the held-out
+    predictions; where it reads like the winner's (>= separate.ALIKE), each manoeuvre kind's
     score and the advice (sdexp.discrepancy.separate)."""
     out = []
     change = lambda f: (cur_held - f.evidence["held_residual"]) / sigma  # noqa: E731
     for t in tie:
         cosine = separate.alike(change(best), change(t))
         if cosine < separate.ALIKE:
+            log(f"discrepancy: {best.name} and {t.name} tie with different signatures (cosine {cosine:.2f}): "
+                f"more flights would settle it")
+            out.append({"candidates": [best.name, t.name], "cosine": cosine, "alike": False})
             continue
         r = dcfg.record
         scores = separate.manoeuvre_scores(drone, sim_cfg, noise_cfg, base + best.effects, base + t.effects,
@@ -428,7 +431,8 @@ def _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcf
                                            float(r.ground), float(r.amplitude))
         text = separate.advice(best.name, t.name, cosine, scores, r.manoeuvres)
         log(f"discrepancy: {text}")
-        out.append({"candidates": [best.name, t.name], "cosine": cosine, "manoeuvre_scores": scores, "advice": text})
+        out.append({"candidates": [best.name, t.name], "cosine": cosine, "alike": True, "manoeuvre_scores": scores,
+                    "advice": text})
     return out
 
 

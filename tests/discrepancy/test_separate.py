@@ -45,7 +45,7 @@ def test_the_advice_names_the_manoeuvre_that_separates_most():
 def test_the_workflow_reports_a_tie_only_when_the_signatures_are_alike(small_cfg, leaf):
     """workflow._confusable: a tied candidate whose change to the held-out predictions is the
     winner's (scaled) gets the cosine, the scores of every manoeuvre and the advice, logged; one
-    whose change points elsewhere is a tie the flights can still settle, and gets nothing."""
+    whose change points elsewhere is a tie more flights can settle: its cosine, no advice."""
     from dataclasses import replace
     from types import SimpleNamespace
 
@@ -65,6 +65,7 @@ def test_the_workflow_reports_a_tie_only_when_the_signatures_are_alike(small_cfg
     dcfg = replace(small_cfg.discrepancy, record=replace(small_cfg.discrepancy.record, seconds=1.0))
     said = []
     out = _confusable(best, [twin, other], held, sigma, [], leaf, small_cfg.sim, small_cfg.noise, dcfg, 3, said.append)
-    assert [o["candidates"] for o in out] == [["thrust_loss", "payload"]]
+    assert [o["candidates"] for o in out] == [["thrust_loss", "payload"], ["thrust_loss", "quadratic_drag"]]
     assert out[0]["cosine"] == pytest.approx(1.0) and set(out[0]["manoeuvre_scores"]) == set(MANOEUVRES)
-    assert said == [f"discrepancy: {out[0]['advice']}"]
+    assert out[0]["alike"] and not out[1]["alike"] and abs(out[1]["cosine"]) < 0.5 and "advice" not in out[1]
+    assert said[0] == f"discrepancy: {out[0]['advice']}" and "more flights would settle it" in said[1]
