@@ -205,3 +205,13 @@ def test_intervals_are_the_bootstrap_central_share_of_each_measured_parameter():
     text = describe({"name": "payload", "params": fit.params, "params_interval": ival, "interval_level": 0.95})
     assert text == ("payload: mass 2 (1.05 to 2.5), point [4 (2.1 to 5), 0 (0 to 0)], rotor 3 (95% intervals)")
     assert params_interval(Fit("x", None, np.zeros(1), np.zeros(1), {}, [], 0.0), cand) == {}
+
+
+def test_few_resampled_flights_widen_the_interval_by_students_t():
+    """4 training flights: t(3) over the normal quantile times sqrt(4/3); many windows: nearly 1."""
+    from scipy.stats import norm, t
+
+    from sdexp.discrepancy.fit import few_units
+    assert few_units(4, 0.95) == pytest.approx(t.ppf(0.975, 3) / norm.ppf(0.975) * np.sqrt(4 / 3))
+    assert few_units(4, 0.95) == pytest.approx(1.875, abs=1e-3)
+    assert 1.0 < few_units(200, 0.95) < 1.01 and few_units(1, 0.95) == 1.0
