@@ -2,7 +2,7 @@
 
 When ``wind`` is named, its mean is what a deterministic prediction can use; gusts are random and
 no window can be predicted from them. But they leave a mark a person (and a simulator) can use:
-the wind each window asks for. Per window, the wind deviation (every axis) from the fitted mean
+the wind each window asks for. Per window, the horizontal wind deviation from the fitted mean
 that best explains its residual (a finite-difference Jacobian per axis, one rollout each for all
 windows; ridge least squares), and then:
 
@@ -27,10 +27,9 @@ STEP = 0.5   # m/s: the finite-difference step of the wind speed
 
 
 def deviations(pred, windows, sigma, effects, wind: dict, r0, ridge: float = 1e-2):
-    """(W, dim) per-window wind deviation (m/s, every axis: a vertical gust lifts the body) from
-    ``wind`` (its entry among ``effects``) and (W, dim) its least-squares variance, from the
-    residual ``r0`` with ``effects``."""
-    axes = list(range(pred.drone.dim))
+    """(W, 2 or 1) per-window horizontal wind deviation (m/s) from ``wind`` (its entry among
+    ``effects``) and (W, k) its least-squares variance, from the residual ``r0`` with ``effects``."""
+    axes = [0, 2] if pred.drone.dim == 3 else [0]
     i = effects.index(wind)
 
     def moved(j):
@@ -97,8 +96,11 @@ def causal_residual(pred, train_all, held, sigma, effects, wind: dict, r_train_a
     offset = np.where(prev[:, None] >= 0, rho * dev[np.maximum(prev, 0)], 0.0)
     live = build_effects([wind])[0]
     mean = np.array(wind["velocity"], dtype=float)
+    axes = [0, 2] if pred.drone.dim == 3 else [0]
 
     def set_wind(w):
-        live.velocity = mean + offset[w]
+        v = mean.copy()
+        v[axes] += offset[w]
+        live.velocity = v
     moved = [live if e is wind else e for e in effects]
     return pred.residual(held, moved, before=set_wind), rho

@@ -480,17 +480,16 @@ class Wind(QuadraticDrag):
 
     @classmethod
     def fit_spec(cls, drone):
-        # theta = the dynamic-pressure vector |w| w of the mean wind in any direction (the drag is
-        # linear in it), up to 5 m/s along each axis; theta = 0 is still air with the wind's drag.
-        # A vertical wind lifts like a thrust change at hover but, unlike one, pushes with the
-        # body's climb rate and its drag area: what the vertical manoeuvres ("steps") tell apart
-        dim = drone.dim
+        # theta = the dynamic-pressure vector |w| w of a horizontal mean wind (the drag is
+        # linear in it), up to 5 m/s along each axis; theta = 0 is still air with the wind's drag
+        dim, horiz = drone.dim, _horizontal(drone.dim)
 
         def entry(th, o):
-            n = np.linalg.norm(th)
-            return {"velocity": (th / np.sqrt(n) if n > 0 else np.zeros(dim)).tolist()}
-        names = ["x", "y", "z"][:dim] if dim == 3 else ["x", "y"]
-        return FitSpec([f"q_{a}" for a in names], [1.0] * dim, [-25.0] * dim, [25.0] * dim, entry,
+            v, n = np.zeros(dim), np.linalg.norm(th)
+            v[horiz] = th / np.sqrt(n) if n > 0 else 0.0
+            return {"velocity": v.tolist()}
+        k = len(horiz)
+        return FitSpec([f"q_{a}" for a in _axis_names(dim)], [1.0] * k, [-25.0] * k, [25.0] * k, entry,
                        base=lambda o: {"velocity": [0.0] * dim})
 
     def __init__(self, velocity: Any = (1.0, 0.0, 0.0), c: float = 0.05, gust: Any = None,
