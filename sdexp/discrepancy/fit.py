@@ -6,9 +6,8 @@ by a finite-difference Jacobian (one rollout per parameter, all windows; about t
 of the candidate's scan where it has one) and bounded linear least squares, then a chord
 Gauss-Newton step for the candidates that pass screening.
 Uncertainty: bootstrap over training flights (windows when fewer than three) of the linear step
-(100 draws with replacement):
-``theta_std`` their spread, and ``params_interval`` the central 95% of each physical parameter
-over the draws, each draw the final theta moved by one bootstrap solution's deviation from the
+(100 draws with replacement): ``theta_std`` their spread, and ``params_interval`` the central 95%
+of each physical parameter over the draws, each draw the final theta moved by one bootstrap solution's deviation from the
 full-sample one (a basic bootstrap about the refined fit), read wider for few units (Student's t
 with units - 1 degrees of freedom: ``few_units``). It holds the noise's share of the
 uncertainty, not a bias of the fit itself (an effect's parameters that trade off against each
@@ -29,8 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import lsq_linear
-from scipy.stats import norm
-from scipy.stats import t as student_t
+from scipy.stats import norm, t as student_t
 
 from sdexp.discrepancy.candidates import Candidate
 

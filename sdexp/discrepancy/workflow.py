@@ -437,7 +437,7 @@ def _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcf
 
 
 def describe(effect: dict) -> str:
-    """'payload: mass 0.29 (0.26-0.32), point [...]': each fitted number with its interval
+    """'payload: mass 0.29 (0.26 to 0.32), point [...]': each fitted number with its interval
     (report.json's params_interval, the central interval_level of the bootstrap)."""
     ival = effect.get("params_interval") or {}
     num = lambda v: f"{v:.3g}"  # noqa: E731
