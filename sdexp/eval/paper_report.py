@@ -269,6 +269,36 @@ def model_test_section(results: Path) -> tuple[list[str], list[tuple]]:
                     "reproduced: a minute in every seed")]
 
 
+def _flies(rows, seeds: int) -> bool:
+    """A drone-task cell flies under a controller: every seed survives, the median error within
+    the task's tolerance (rows: that controller's flights of the cell)."""
+    ok = rows[rows["survived"].astype(bool)]
+    return len(ok) == seeds and float(ok["primary_value"].median()) <= float(ok["tolerance"].iloc[0])
+
+
+def _pairs(table, controller: str, seeds: int) -> int:
+    rows = table[table["controller"] == controller]
+    return sum(_flies(g, seeds) for _, g in rows.groupby(["drone", "task"]))
+
+
+def _lowpass_line(results: Path, table, seeds: int) -> list[str]:
+    """results/fleet_lowpass/ (every controller reading the state through control.lowpass), when
+    committed: the pairs each controller flies there beside here."""
+    import pandas as pd
+
+    folder = results / "fleet_lowpass"
+    if not folder.is_dir():
+        return []
+    run = committed.load(folder, "fleet")
+    other = pd.read_csv(folder / "fleet.csv")
+    tau = float(run.config["control"]["lowpass"])
+    n = len(table.groupby(["drone", "task"]))
+    return [f"Pairs that fly under the rigid LQR here: {_pairs(table, 'rigid_lqr', seeds)} of {n}. With every controller "
+            f"reading the state through a {1000 * tau:.0f} ms low-pass (`results/fleet_lowpass/`, `control.lowpass`: the "
+            f"IMUs ride the bodies' elastic modes): ours {_pairs(other, 'ours', seeds)}, the rigid LQR "
+            f"{_pairs(other, 'rigid_lqr', seeds)} (docs/results.md, \"The state through a low-pass\").", ""]
+
+
 def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     """results/fleet/: every drone x task x seed in one run (sdexp.eval.fleet), its fleet.csv and
     physics.csv. A cell (drone, task) flies when ours survives every seed and its median error is
@@ -308,7 +338,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
             ours, rigid = sel[sel["controller"] == "ours"], sel[sel["controller"] == "rigid_lqr"]
             ok = ours[ours["survived"].astype(bool)]
             med = float(ok["primary_value"].median()) if len(ok) else float("nan")
-            good = len(ok) == seeds and med <= float(ok["tolerance"].iloc[0])
+            good = _flies(ours, seeds)
             flies[(drone, task)] = good
             text = f"{len(ok)}/{seeds}" + (f", {med:.2g}" if len(ok) else "")
             text = f"**{text}**" if good else text
@@ -323,6 +353,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
         lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(phys) + " |")
     lines += ["", f"The fleet's wall time: {rs[0].metrics['wall_seconds'] / 3600:.1f} h "
               "on 2 cores. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
+    lines += _lowpass_line(results, table, seeds)
     n_fly = sum(flies.values())
     per_task = ", ".join(f"{t} {sum(flies[(d, t)] for d in drones)}" for t in tasks)
     all_tasks = sum(all(flies[(d, t)] for t in tasks) for d in drones)

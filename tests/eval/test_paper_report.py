@@ -42,9 +42,9 @@ def test_verdicts_follow_the_numbers(tmp_path):
     assert "seeds 0, 1, 2" in render(tmp_path)
 
 
-def _fleet_run(folder, errors):
+def _fleet_run(folder, errors, rigid_error=None, lowpass=0.0):
     """A fleet run of two drones, hover only, two seeds: ``errors[drone]`` the final errors of ours
-    (None: that seed lost control)."""
+    (None: that seed lost control); the rigid LQR survives with ``rigid_error`` (None: it is lost)."""
     import pandas as pd
     folder.mkdir(parents=True)
     rows = []
@@ -52,13 +52,15 @@ def _fleet_run(folder, errors):
         for seed, err in enumerate(errs):
             rows.append({"drone": drone, "seed": seed, "task": "hover", "controller": "ours", "survived": err is not None,
                          "primary": "final_error", "primary_value": err if err is not None else 5.0, "tolerance": 0.1})
-            rows.append({"drone": drone, "seed": seed, "task": "hover", "controller": "rigid_lqr", "survived": False,
-                         "primary": "final_error", "primary_value": 3.0, "tolerance": 0.1})
+            rows.append({"drone": drone, "seed": seed, "task": "hover", "controller": "rigid_lqr",
+                         "survived": rigid_error is not None, "primary": "final_error",
+                         "primary_value": 3.0 if rigid_error is None else rigid_error, "tolerance": 0.1})
     pd.DataFrame(rows).to_csv(folder / "fleet.csv", index=False)
     pd.DataFrame([{"drone": d, "seed": 0, "thrust_to_weight": 5.0, "hover_fold_deg": 2.0, "d_val_rel_l1": 0.3,
                    "g_val_rel_l1": 0.4, "h_val_rel_l1": 0.5} for d in errors]).to_csv(folder / "physics.csv", index=False)
     (folder / "metrics.json").write_text(json.dumps({"wall_seconds": 3600.0}))
-    config = {"seed": 0, "sim": {"element": "quadratic"}, "experiment": {"params": {"tasks": ["hover"], "seeds": [0, 1]}}}
+    config = {"seed": 0, "sim": {"element": "quadratic"}, "control": {"lowpass": lowpass},
+              "experiment": {"params": {"tasks": ["hover"], "seeds": [0, 1]}}}
     (folder / "config.yaml").write_text(yaml.safe_dump(config))
 
 
@@ -77,3 +79,15 @@ def test_the_fleet_verdict_counts_the_drone_task_pairs_that_fly(tmp_path):
     verdict, row = _fleet_verdict(tmp_path)
     assert verdict == "not reproduced" and "1 of 3 drone-task pairs fly" in row
     assert "| star | 1/2, 0.05 (rigid 0/2) |" in render(tmp_path)
+
+
+def test_the_fleet_through_a_low_pass_is_counted_beside_it(tmp_path):
+    """results/fleet_lowpass/, when committed: the pairs each controller flies there, beside the
+    rigid LQR's here; the verdict stays the fleet's own."""
+    _fleet_run(tmp_path / "fleet", {"flower": [0.05, 0.08], "rod": [0.3, 0.3]})
+    assert "low-pass" not in render(tmp_path)
+    _fleet_run(tmp_path / "fleet_lowpass", {"flower": [0.05, 0.3], "rod": [0.02, 0.03]}, rigid_error=0.01, lowpass=0.03)
+    text = render(tmp_path)
+    assert ("Pairs that fly under the rigid LQR here: 0 of 2. With every controller reading the state through a "
+            "30 ms low-pass") in text and "ours 1, the rigid LQR 2" in text
+    assert _fleet_verdict(tmp_path)[0] == "not reproduced"
