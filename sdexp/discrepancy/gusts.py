@@ -2,7 +2,7 @@
 
 When ``wind`` is named, its mean is what a deterministic prediction can use; gusts are random and
 no window can be predicted from them. But they leave a mark a person (and a simulator) can use:
-the wind each window asks for. Per window, the horizontal wind deviation from the fitted mean
+the wind each window asks for. Per window, the wind deviation (in the fitted wind's plane) from the fitted mean
 that best explains its residual (a finite-difference Jacobian per axis, one rollout each for all
 windows; ridge least squares), and then:
 
@@ -26,10 +26,11 @@ from sdexp.discrepancy.fit import per_window
 STEP = 0.5   # m/s: the finite-difference step of the wind speed
 
 
-def deviations(pred, windows, sigma, effects, wind: dict, r0, ridge: float = 1e-2):
-    """(W, 2 or 1) per-window horizontal wind deviation (m/s) from ``wind`` (its entry among
-    ``effects``) and (W, k) its least-squares variance, from the residual ``r0`` with ``effects``."""
-    axes = [0, 2] if pred.drone.dim == 3 else [0]
+def deviations(pred, windows, sigma, effects, wind: dict, r0, axes, ridge: float = 1e-2):
+    """(W, k) per-window wind deviation (m/s) along ``axes`` (the plane the wind was fitted in,
+    effects.WIND_PLANES) from ``wind`` (its entry among ``effects``) and (W, k) its least-squares
+    variance, from the residual ``r0`` with ``effects``."""
+    axes = list(axes)
     i = effects.index(wind)
 
     def moved(j):
@@ -78,7 +79,7 @@ def previous(windows) -> np.ndarray:
     return prev
 
 
-def causal_residual(pred, train_all, held, sigma, effects, wind: dict, r_train_all, r_held):
+def causal_residual(pred, train_all, held, sigma, effects, wind: dict, r_train_all, r_held, axes):
     """Held-out residual of a drifting wind: each window predicted with the fitted mean plus
     rho x the deviation the window before it (0.5 s earlier, in the same flight) asked for, rho
     the lag-one correlation on the training flights. Causal: a window's own data never set its
@@ -87,16 +88,16 @@ def causal_residual(pred, train_all, held, sigma, effects, wind: dict, r_train_a
     no drift."""
     from sdexp.sim.physics.effects import build_effects
 
-    dev_tr, _ = deviations(pred, train_all, sigma, effects, wind, r_train_all)
+    dev_tr, _ = deviations(pred, train_all, sigma, effects, wind, r_train_all, axes)
     rho, _ = lag_one(dev_tr, train_all.flight_of)
     if not rho > 0:
         return None, rho
-    dev, _ = deviations(pred, held, sigma, effects, wind, r_held)
+    dev, _ = deviations(pred, held, sigma, effects, wind, r_held, axes)
     prev = previous(held)
     offset = np.where(prev[:, None] >= 0, rho * dev[np.maximum(prev, 0)], 0.0)
     live = build_effects([wind])[0]
     mean = np.array(wind["velocity"], dtype=float)
-    axes = [0, 2] if pred.drone.dim == 3 else [0]
+    axes = list(axes)
 
     def set_wind(w):
         v = mean.copy()

@@ -37,6 +37,7 @@ from sdexp.discrepancy.localize import (channel_excess, heatmap, localize, noise
 from sdexp.discrepancy.logs import read_logs
 from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
+from sdexp.sim.physics.effects import WIND_PLANES
 from sdexp.errors import UserError
 from sdexp.run import Run
 
@@ -265,7 +266,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
                 return
             eff = base + f.effects
             r_c, rho = gusts.causal_residual(pred, train_all, held, sigma, eff, f.effects[0],
-                                             pred.residual(train_all, eff), f.evidence["held_residual"])
+                                             pred.residual(train_all, eff), f.evidence["held_residual"],
+                                             WIND_PLANES[drone.dim][f.option])
             f.evidence["drift_rho"] = rho
             if r_c is not None and np.mean(window_loss(r_c, sigma)) < f.held_loss:
                 f.evidence["steady_held_w"] = f.held_w
@@ -345,7 +347,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     if wind is not None:
         # a named wind: do the windows ask for a slowly varying one? then the fit gets its gusts
         entry = wind.effects[0]
-        dev, var = gusts.deviations(pred, w_all, sigma, base, entry, r_left)
+        dev, var = gusts.deviations(pred, w_all, sigma, base, entry, r_left, WIND_PLANES[drone.dim][wind.option])
         gust_stats = gusts.statistics(dev, var, w_all.flight_of, held_ids, dcfg.stride, dcfg.alpha)
         if gust_stats["gusty"] and gust_stats["gust_time"]:
             entry.update(gust_std=gust_stats["gust_std"], gust_time=gust_stats["gust_time"])

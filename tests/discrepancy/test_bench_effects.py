@@ -41,6 +41,6 @@ def test_the_hanging_weight_pulls_its_weight_at_rest(small_cfg, leaf):
 def test_the_bench_lists_variants_and_unmodelled_kinds(leaf):
     scs = scenarios(leaf, ["wind"], 1, 1, False, 1, levels=(1,), variants=1)
     kinds = [s["kind"] for s in scs]
-    assert kinds.count("variant") == 4 and kinds.count("unmodelled") == 6
+    assert kinds.count("variant") == 6 and kinds.count("unmodelled") == 5
     assert {s["truth"][0] for s in scs if s["kind"] == "variant"} == {"wind", "motor_lag", "payload"}
     assert len({s["seed"] for s in scs}) == len(scs)

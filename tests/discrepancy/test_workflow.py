@@ -215,3 +215,18 @@ def test_few_resampled_flights_widen_the_interval_by_students_t():
     assert few_units(4, 0.95) == pytest.approx(t.ppf(0.975, 3) / norm.ppf(0.975) * np.sqrt(4 / 3))
     assert few_units(4, 0.95) == pytest.approx(1.875, abs=1e-3)
     assert 1.0 < few_units(200, 0.95) < 1.01 and few_units(1, 0.95) == 1.0
+
+
+def test_a_vertical_wind_is_named_wind_not_a_thrust_change(tmp_path, small_cfg, leaf):
+    """Air rising at 3 m/s lifts the body like more thrust at hover, but pushes with its climb
+    rate: among wind, payload, thrust loss and damping, wind is named, fitted in a plane through
+    the up axis (effects.WIND_PLANES), its velocity upward."""
+    cfg = replace(small_cfg, discrepancy=replace(small_cfg.discrepancy,
+                                                 candidates=["wind", "payload", "thrust_loss", "damping_scale"],
+                                                 record=replace(small_cfg.discrepancy.record, flights=6, seconds=6.0)))
+    record(cfg, leaf, tmp_path / "logs", [{"name": "wind", "velocity": [0.0, 3.0, 0.0]}], seed=17)
+    rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
+    assert rep["effects"] and rep["effects"][0]["name"] == "wind"
+    v = np.array(rep["effects"][0]["params"]["velocity"])
+    assert v[1] > 2.0 and abs(v[1]) > 3 * np.abs(v[[0, 2]]).max()
+    assert rep["effects"][0]["params"]["plane"] in ("xy", "zy")   # a plane through the up axis

@@ -463,6 +463,10 @@ class QuadraticDrag(Effect):
         f -= self.c * self.area * np.linalg.norm(u, axis=1, keepdims=True) * u
 
 
+# the wind fit's options: the axes its parameters lie along, the horizontal plane first
+WIND_PLANES = {3: {"xz": (0, 2), "xy": (0, 1), "zy": (2, 1)}, 2: {"x": (0,), "y": (1,)}}
+
+
 class Wind(QuadraticDrag):
     name = "wind"
     description = ("Moving air acting through the quadratic surface drag: a mean velocity, an optional "
@@ -480,16 +484,21 @@ class Wind(QuadraticDrag):
 
     @classmethod
     def fit_spec(cls, drone):
-        # theta = the dynamic-pressure vector |w| w of a horizontal mean wind (the drag is
-        # linear in it), up to 5 m/s along each axis; theta = 0 is still air with the wind's drag
-        dim, horiz = drone.dim, _horizontal(drone.dim)
+        # theta = the dynamic-pressure vector |w| w of the mean wind (the drag is linear in it), up
+        # to 5 m/s along each axis, in one plane of WIND_PLANES (the options, fitted in turn): the
+        # horizontal one first, as before, or one through the up axis, where a rising or sinking
+        # wind lies -- it lifts like a thrust change at hover but pushes with the climb rate. Two
+        # parameters (2D: one) whatever the direction, so a horizontal wind fits exactly as it did.
+        # theta = 0 is still air with the wind's drag
+        dim, planes = drone.dim, WIND_PLANES[drone.dim]
 
         def entry(th, o):
             v, n = np.zeros(dim), np.linalg.norm(th)
-            v[horiz] = th / np.sqrt(n) if n > 0 else 0.0
+            v[list(planes[o])] = th / np.sqrt(n) if n > 0 else 0.0
             return {"velocity": v.tolist()}
-        k = len(horiz)
-        return FitSpec([f"q_{a}" for a in _axis_names(dim)], [1.0] * k, [-25.0] * k, [25.0] * k, entry,
+        k = len(planes[next(iter(planes))])
+        return FitSpec(["q_a", "q_b"][:k], [1.0] * k, [-25.0] * k, [25.0] * k, entry,
+                       report=lambda th, o: {**entry(th, o), "plane": o}, options=list(planes),
                        base=lambda o: {"velocity": [0.0] * dim})
 
     def __init__(self, velocity: Any = (1.0, 0.0, 0.0), c: float = 0.05, gust: Any = None,
