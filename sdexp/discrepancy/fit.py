@@ -32,6 +32,8 @@ from scipy.stats import norm, t as student_t
 
 from sdexp.discrepancy.candidates import Candidate
 
+LEVEL = 0.95   # the intervals' coverage (params_interval)
+
 
 @dataclass
 class Fit:
@@ -158,9 +160,6 @@ def few_units(n: int, level: float) -> float:
     misses at the plain spread needed x1.3-1.7 on 4 training flights."""
     q = 0.5 * (1 + level)
     return float(student_t.ppf(q, n - 1) / norm.ppf(q) * np.sqrt(n / (n - 1))) if n > 1 else 1.0
-
-
-LEVEL = 0.95   # the intervals' coverage
 
 
 def params_interval(fit: Fit, cand: Candidate, level: float = LEVEL) -> dict:
