@@ -62,6 +62,10 @@ class MeshConfig:
                                                      # (sdexp.sim.mesh.mirror); [] = mesh the whole body
     layers: int = 0            # 3D: 0 = fTetWild tetrahedralises the closed surface; n >= 1 = the outline
                                # triangulated and extruded through the thickness in n layers (no slivers)
+    # layered 3D plates: "resampled" = the outline resampled evenly edge_length apart (the drones'
+    # meshes); "exact" = the design's outline with its corners, graded toward the re-entrant ones
+    # (the converged references of sdexp.eval.convergence: an even resampling cuts narrow notches)
+    outline: str = field(default="resampled", metadata=UNLESS_DEFAULT)
     # A drone of one's own (sdexp.sim.mesh.meshfile): a closed surface or a tet mesh (3D), a closed
     # outline or a triangle mesh (2D), in any format meshio reads; null = the shape generator. Its
     # name is not part of the cache keys: its content is (digest), so an edited file is remeshed.
@@ -584,6 +588,8 @@ def validate(cfg: DictConfig | Config) -> None:
            "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
     _check(d.mesh.layers == 0 or (d.dim == 3 and 1 <= d.mesh.layers <= 8), "drone.mesh.layers", d.mesh.layers,
            "0 (fTetWild) or 1-8 layers through the thickness (3D drones only)")
+    _check(d.mesh.outline in ("resampled", "exact") and (d.mesh.outline == "resampled" or d.mesh.layers),
+           "drone.mesh.outline", d.mesh.outline, "resampled, or exact with drone.mesh.layers >= 1")
     _check(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
     _check(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
            "null or in (0, sim.control_dt]")

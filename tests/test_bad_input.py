@@ -52,6 +52,8 @@ def rejected(*overrides) -> str:
     ("drone.damping=-inf", "drone.damping", ">= 0"),
     ("drone.rotor_radius=0", "drone.rotor_radius", "> 0 m"),
     ("drone.imu_radius=-0.1", "drone.imu_radius", "> 0 m"),
+    ("drone.mesh.outline=exakt", "drone.mesh.outline", "resampled, or exact"),
+    ("drone.mesh.outline=exact", "drone.mesh.outline", "with drone.mesh.layers >= 1"),   # the flower: fTetWild
     ("drone.size=[3.6,inf,3.6]", "drone.size", "positive lengths"),
     ("sim.gravity=nan", "sim.gravity", ">= 0"),
     ("sim.gravity=-9.81", "sim.gravity", ">= 0"),

@@ -144,6 +144,9 @@ def test_validate_fem_runs_shrunk_and_matches_the_stored_reference(tmp_path, cac
     metrics = run_experiment(cfg, tmp_path)
     assert (tmp_path / "cantilever.png").exists() and (tmp_path / "drones.png").exists()
     assert abs(metrics["rod_quadratic_compliance_error"]) < 0.05 and metrics["rod_linear_compliance_error"] < -0.2
+    # the second yardstick: locked linear elements ring more than twice as high, quadratic ones
+    # within 1% over the first eight free-free modes
+    assert abs(metrics["rod_quadratic_freq_error_max"]) < 0.01 and metrics["rod_linear_freq_error"] > 1.0
     reference = json.loads((Path(__file__).resolve().parents[1] / "results" / "validate_fem" / "metrics.json").read_text())
     for key in ("rigid_rise_error", "sag_error_linear_structured_2D_2layers", "freq_error_linear_structured_2D_2layers",
                 "sag_error_linear_structured_3D_1layers", "freq_error_linear_structured_3D_1layers",

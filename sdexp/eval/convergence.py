@@ -18,7 +18,12 @@ this measures is a stiffness error, the same in the linear regime as near it.
 
 The measures: the RMS over the peripheral IMUs of the bend angle s (deg), read by the sensor
 pipeline from the rest positions plus the displacement (scaled to a small strain and back: s is
-linear in u there); and the compliance f . u, the whole body's stiffness (static_response).
+linear in u there); the compliance fb . u, the whole body's stiffness (static_response); and
+the first eight free-free frequencies, which no load enters.
+
+The references keep the design's outline exactly on every mesh, refined in the plane and
+through the thickness alike (``refined``): Richardson across meshes of different bodies
+extrapolates to none of them.
 
 Richardson: element sizes h (mean element volume's cube root, area's square root in 2D:
 unstructured meshes do not refine by the nominal edge ratio), bends b on three meshes, fit
@@ -36,25 +41,34 @@ from sdexp.cache import cached_arrays, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.sim.drone import build_drone
 from sdexp.sim.physics.fem import FemModel
-from sdexp.sim.physics.modes import rigid_modes, stiffness
+from sdexp.sim.physics.modes import free_frequencies, rigid_modes, stiffness
 from sdexp.sim.rigid.geometry import hover_thrust, rigid_body
 from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
 from sdexp.sim.rigid.statics import outer_rotors
 
-FORMAT = 7   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields
+FORMAT = 8   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields;
+             # 8: exact outlines, layers with r, the balanced load's work, free-free frequencies
+MODES = 8    # free-free frequencies compared
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
                            # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)
 
 
-def static_displacement(fem: FemModel, f: np.ndarray) -> np.ndarray:
-    """u (nv, dim) of the free body under nodal forces f (nv, dim), with what net force and
-    torque f has balanced by the rigid acceleration it causes (mass-weighted)."""
+def balanced(fem: FemModel, f: np.ndarray) -> np.ndarray:
+    """Nodal forces f (nv, dim) less the net force and torque they carry, balanced by the rigid
+    acceleration they cause (mass-weighted: d'Alembert's inertia relief of a free body)."""
     d = fem.dim
     Rm = rigid_modes(fem.rest)
-    m = np.repeat(fem.mass, d)
-    MR = m[:, None] * Rm
-    fb = f.ravel() - MR @ np.linalg.solve(Rm.T @ MR, Rm.T @ f.ravel())
+    MR = np.repeat(fem.mass, d)[:, None] * Rm
+    return (f.ravel() - MR @ np.linalg.solve(Rm.T @ MR, Rm.T @ f.ravel())).reshape(-1, d)
+
+
+def static_displacement(fem: FemModel, f: np.ndarray) -> np.ndarray:
+    """u (nv, dim) of the free body under nodal forces f (nv, dim), with what net force and
+    torque f has balanced by the rigid acceleration it causes (``balanced``)."""
+    d = fem.dim
+    Rm = rigid_modes(fem.rest)
+    fb = balanced(fem, f).ravel()
     # hold the rigid motions: node a fully, b in the directions not along a-b, c in the normal
     x = fem.rest
     a = int(np.argmin(x[:, 0]))
@@ -86,35 +100,74 @@ def load_thrusts(drone, gravity: float, load: float) -> np.ndarray:
     return hover_thrust(mass, rot.anchors - com, rot.normals, gravity) + load * outer_rotors(drone)
 
 
-def fixed_load(drone, gravity: float, load: float) -> np.ndarray:
+def centred_weights(drone, r: int) -> np.ndarray:
+    """Rotor r's patch weights for a load that converges with the mesh: each patch face's area
+    shared among its nodes (a uniform traction, not the simulator's equal share per vertex),
+    then the least change (relative to each weight) that puts the load's centroid on the
+    anchor. The simulator's patches carry their thrust up to 7 cm off the anchor on the default
+    flower and 1-2 cm on its refinements, which moved the references' compliance by +-4% from
+    one refinement to the next (the petals' lever)."""
+    rot, x = drone.rotors, drone.fem.rest
+    faces = rot.faces[rot.face_ptr[r]:rot.face_ptr[r + 1]]
+    verts = rot.verts[rot.vert_ptr[r]:rot.vert_ptr[r + 1]]
+    p = x[faces]
+    if drone.fem.dim == 3:
+        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        share = np.repeat(area / 3, 3)
+    else:   # segments, stored (k, 3) with the first node repeated
+        share = np.repeat(0.5 * np.linalg.norm(p[:, 1] - p[:, 0], axis=1), 2)
+        faces = faces[:, :2]
+    w = np.bincount(np.searchsorted(verts, faces.ravel()), share, len(verts))
+    fem = drone.fem
+    if fem.order == 2:   # a uniform traction's consistent load on a 6-node face (3D) is all on
+        w[verts < fem.elems[:, fem.dim + 1:].min()] = 0.0   # its mid-edge nodes (corners 0,
+        # mid-edges A/3); shared among corners too, it left a bump whose energy fell like h
+    w /= w.sum()
+    A = np.vstack([np.ones(len(verts)), (x[verts] - rot.anchors[r]).T])   # sum, first moments
+    b = np.zeros(len(A))
+    b[0] = 1.0
+    dw = w * (A.T @ np.linalg.lstsq((A * w) @ A.T, b - A @ w, rcond=None)[0])
+    return w + dw
+
+
+def fixed_load(drone, gravity: float, load: float, centred: bool = False) -> np.ndarray:
     """Nodal forces (nv, dim) of the module's load. The thrusts come from the design (its rotor
     anchors and normals, not the mesh's patch normals) so that every mesh of a drone carries the
     same load: hover_thrust's choice between thrust patterns turns on how far the rotors tilt,
     and a patch normal a degree off on one mesh flipped the octopus's head rotor between 0 and
-    1.1 N (its compliance jumped 20% between neighbouring refinements)."""
+    1.1 N (its compliance jumped 20% between neighbouring refinements). Spread over each patch
+    as the simulator spreads it, or ``centred`` (centred_weights: the references' load)."""
     fem, rot = drone.fem, drone.rotors
     u = load_thrusts(drone, gravity, load)
     f = np.zeros_like(fem.rest)
     f[:, 1] -= fem.mass * gravity
     for r in range(rot.count):
         k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
-        np.add.at(f, rot.verts[k], u[r] * rot.weights[k, None] * rot.normals[r])
+        w = centred_weights(drone, r) if centred else rot.weights[k]
+        np.add.at(f, rot.verts[k], u[r] * w[:, None] * rot.normals[r])
     return f
 
 
-def static_response(drone, gravity: float = 9.81, load: float = 2.0) -> dict:
+def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int = MODES,
+                    centred: bool = False) -> dict:
     """Under the fixed load, static and linear: ``bend``, the RMS bend (deg) of the peripheral
-    IMUs as the sensor pipeline reads it, and ``compliance``, the load's work f . u (J): the
-    stiffness of the whole body (for one load a conforming mesh underestimates it, too stiff;
-    here the load too moves a little with the mesh, through the patches). The bend is what the controller sees, but it is read from the few
-    surface nodes inside each IMU patch; where it is below a degree (the compact 2D drones)
-    which nodes fall inside moves it by more than the elements do."""
-    f = fixed_load(drone, gravity, load)
-    u = static_displacement(drone.fem, f)
-    out = {"compliance": float(np.sum(f * u)), "bend": float("nan")}
+    IMUs as the sensor pipeline reads it, and ``compliance``, the work of the balanced load
+    fb . u (J): the stiffness of the whole body (for one load a conforming mesh underestimates
+    it, too stiff; here the load too moves a little with the mesh, through the patches). The
+    balanced load's work does not depend on the rigid part of u, which is arbitrary (the
+    unbalanced load dotted with u did: -9% to +20% of it). The bend is what the controller sees,
+    but it is read from the few surface nodes inside each IMU patch; where it is below a degree
+    (the compact 2D drones) which nodes fall inside moves it by more than the elements do.
+    And ``freq``, the first ``modes`` free-free frequencies (Hz, HRZ-lumped mass as simulated):
+    a yardstick that no load or patch placement enters."""
+    fem = drone.fem
+    fb = balanced(fem, fixed_load(drone, gravity, load, centred))
+    u = static_displacement(fem, fb)
+    out = {"compliance": float(np.sum(fb * u)), "bend": float("nan"),
+           "freq": free_frequencies(fem, k=modes)}
     if drone.layout.n_s:
-        eps = 1e-4 * np.ptp(drone.fem.rest, axis=0).max() / max(np.abs(u).max(), 1e-300)
-        x = drone.fem.rest + eps * u
+        eps = 1e-4 * np.ptp(fem.rest, axis=0).max() / max(np.abs(u).max(), 1e-300)
+        x = fem.rest + eps * u
         s = decompose(read_imus(0.0, x, np.zeros_like(x), drone.imus), drone.layout).s / eps
         out["bend"] = float(np.rad2deg(np.sqrt(np.mean(np.square(s)))))
     return out
@@ -148,12 +201,17 @@ def richardson(h, b) -> tuple[float, float, float]:
 
 def refined(mesh, r: float, dim: int):
     """The reference mesh settings (a MeshConfig) r times finer: edge_length / r, and in 3D always a plate
-    extruded through the thickness in at least two layers (layers x r, rounded up): fTetWild's
-    meshes keep the surface only to its envelope (a few mm, which on a 0.15 m shell is 20% of
-    its bending stiffness) however fine they are, an extruded mesh keeps it exactly."""
+    extruded through the thickness (layers x r, at least 4/3 r when the drone has fewer than two,
+    rounded up: refined through the thickness as in the plane) with the design's outline kept
+    exactly (``outline: exact``, graded toward its re-entrant corners): fTetWild's meshes keep
+    the surface only to its envelope (a few mm, which on a 0.15 m shell is 20% of its bending
+    stiffness) however fine they are, and an evenly resampled outline cuts the notches between
+    petals (the flower's at 0.63-0.69 m from the centre instead of 0.60), so each refinement
+    would be another body."""
     out = {"edge_length": float(mesh.edge_length) / r}
     if dim == 3:
-        out["layers"] = max(2, int(np.ceil(max(1, mesh.layers) * r - 1e-9)))
+        out["layers"] = int(np.ceil(max(4 / 3, mesh.layers) * r - 1e-9))
+        out["outline"] = "exact"
     return replace(mesh, **out)
 
 
@@ -161,35 +219,52 @@ def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravit
                        load: float = 2.0, element: str = "quadratic") -> dict:
     """static_response of ``element`` meshes r times finer (``refined``) for r in ``refine`` and
     the Richardson extrapolate of each quantity (``<q>_converged``, ``<q>_order``,
-    ``<q>_uncertainty``); cached (fine 3D meshes take minutes to make)."""
+    ``<q>_uncertainty``; per mode for the frequencies, lists); cached (fine 3D meshes take
+    minutes to make)."""
     payload = {"drone": config_key(drone_cfg), "refine": list(refine),
-               "gravity": gravity, "load": load, "element": element}
+               "gravity": gravity, "load": load, "element": element, "modes": MODES}
 
     def make():
-        rows = []
+        rows, freqs = [], []
         for r in refine:
             cfg = replace(drone_cfg, mesh=refined(drone_cfg.mesh, r, int(drone_cfg.dim)))
             drone = build_drone(cfg, cache_dir, element)
-            res = static_response(drone, gravity, load)
+            res = static_response(drone, gravity, load, centred=True)
             rows.append([element_size(drone), drone.fem.n_elems, res["bend"], res["compliance"]])
+            freqs.append(res["freq"])
         h, n, bend, compliance = np.array(rows).T
-        return {"h": h, "elements": n, "bend": bend, "compliance": compliance}
+        return {"h": h, "elements": n, "bend": bend, "compliance": compliance, "freq": np.array(freqs)}
 
     a = cached_arrays(cache_dir, key_of("response", FORMAT, payload), make)
     out = {k: a[k].tolist() for k in a}
     for q in ("bend", "compliance"):
         value, order, unc = richardson(a["h"], a[q])
         out.update({f"{q}_converged": value, f"{q}_order": order, f"{q}_uncertainty": unc})
+    fits = [richardson(a["h"], a["freq"][:, k]) for k in range(a["freq"].shape[1])]
+    out.update({f"freq_{w}": [f[i] for f in fits] for i, w in enumerate(("converged", "order", "uncertainty"))})
     return out
 
 
 def response_errors(drone, reference: dict, gravity: float = 9.81, load: float = 2.0) -> dict:
-    """The drone's static response beside the converged one (``converged_response``), as
-    relative errors (negative: too stiff), with the reference's own uncertainty."""
+    """The drone's static response and free-free frequencies beside the converged ones
+    (``converged_response``), as relative errors (negative: stiffer for the bend and the
+    compliance, lower for a frequency; a too stiff mesh bends less and rings higher), with the
+    reference's own uncertainty. The bend and compliance under the load as the simulator
+    spreads it over its patches (``<q>_error``: as flown) and as the references spread it
+    (``<q>_centred_error``: the elements' share of the error). The frequencies as ``freq_error`` (the first mode's),
+    ``freq_error_max`` (the largest in size of the first MODES, signed) and ``freq_errors``."""
     res = static_response(drone, gravity, load)
+    centred = static_response(drone, gravity, load, modes=1, centred=True)
     out = {}
     for q in ("bend", "compliance"):
         ref = reference[f"{q}_converged"]
         out.update({q: res[q], f"{q}_converged": ref, f"{q}_error": res[q] / ref - 1,
+                    f"{q}_centred_error": centred[q] / ref - 1,
                     f"{q}_reference_uncertainty": reference[f"{q}_uncertainty"] / abs(ref)})
+    ref = np.asarray(reference["freq_converged"])
+    err = res["freq"] / ref - 1
+    out.update({"freq": float(res["freq"][0]), "freq_converged": float(ref[0]), "freq_error": float(err[0]),
+                "freq_error_max": float(err[np.argmax(np.abs(err))]),
+                "freq_reference_uncertainty": float(np.max(np.asarray(reference["freq_uncertainty"]) / ref)),
+                "freq_errors": " ".join(f"{e:+.4f}" for e in err)})
     return out

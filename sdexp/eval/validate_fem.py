@@ -206,6 +206,8 @@ def run(run: Run) -> dict:
     for r in drone_rows:
         metrics[f"{r['drone']}_{r['element']}_bend_error"] = r["bend_error"]
         metrics[f"{r['drone']}_{r['element']}_compliance_error"] = r["compliance_error"]
+        metrics[f"{r['drone']}_{r['element']}_freq_error"] = r["freq_error"]
+        metrics[f"{r['drone']}_{r['element']}_freq_error_max"] = r["freq_error_max"]
     for r in rows:
         key = r["element"] + "_" + (f"pytetwild_edge{r['edge']:g}" if np.isnan(r["layers"])
                                     else f"{r['mesh'].replace(' ', '_')}_{int(r['layers'])}layers")
@@ -216,7 +218,8 @@ def run(run: Run) -> dict:
 
 def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> list[dict]:
     """Every named drone at its default mesh, linear and quadratic, against the converged body
-    (sdexp.eval.convergence): the bend its IMUs read and its compliance under a fixed load."""
+    (sdexp.eval.convergence): the bend its IMUs read and its compliance under a fixed load, and
+    its first free-free frequencies."""
     from sdexp.eval.bench_sim import drone_config
     from sdexp.eval.convergence import converged_response, response_errors
     from sdexp.sim.drone import build_drone
@@ -229,8 +232,11 @@ def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> l
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"drone": name, "element": element, "elements": drone.fem.n_elems,
                          **response_errors(drone, ref, gravity, load)})
-            log.info(f"  {name} {element}: bend error {rows[-1]['bend_error']:+.1%}, compliance error "
-                     f"{rows[-1]['compliance_error']:+.1%}")
+            r = rows[-1]
+            log.info(f"  {name} {element}: bend error {r['bend_error']:+.1%} ({r['bend_centred_error']:+.1%} "
+                     f"under the centred load), compliance error {r['compliance_error']:+.1%} "
+                     f"({r['compliance_centred_error']:+.1%}), first frequency {r['freq_error']:+.1%} "
+                     f"(worst of {len(ref['freq_converged'])}: {r['freq_error_max']:+.1%})")
     return rows
 
 

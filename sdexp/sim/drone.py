@@ -118,7 +118,8 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str, name: str = "") -> tuple[np.n
         if layers:
             from sdexp.sim.mesh.mirror import AXES, reflect_all
             try:
-                pts, el = reflect_all(*shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes)),
+                pts, el = reflect_all(*shape.layered_mesh(mesh.edge_length, layers, tuple(AXES[p] for p in planes),
+                                                          mesh.outline == "exact"),
                                       planes)
             except ValueError as err:
                 raise UserError(f"drone.mesh.mirror = {planes}: {err}") from None

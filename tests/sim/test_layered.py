@@ -61,3 +61,22 @@ def test_layers_key_and_bad_input(tmp_path):
     rod = replace(rod, mesh=replace(rod.mesh, layers=1))
     with pytest.raises(UserError, match="drone.mesh.layers"):
         mesh_shape(make_shape(rod), rod.mesh, str(tmp_path))
+
+
+def test_exact_outline_keeps_the_notches_that_an_even_resampling_cuts(tmp_path):
+    """drone.mesh.outline: exact (the converged references' meshes). The flower's petals meet
+    the disc in narrow notches (1 deg of arc at 0.60 m from the centre): resampled evenly (edge
+    0.35 m / 1, 1.5, 2, 3) the outline runs across them and the mesh fills them to 0.63-0.69 m
+    from the centre with material the design does not have; the exact outline reaches the notch
+    bottoms, its segments graded finer there."""
+    def notch_bottom(pts, tets):   # the outline's nearest point to the centre between two petals
+        faces = boundary_faces(tets)
+        n = face_normals(pts, faces)
+        wall = np.unique(faces[np.abs(n[:, 1]) < 1e-9 * np.linalg.norm(n, axis=1)])
+        ang, r = np.arctan2(pts[wall, 2], pts[wall, 0]), np.hypot(pts[wall, 0], pts[wall, 2])
+        return r[np.abs(ang - np.pi / 8) < np.radians(5)].min()   # between the petals along 0 and 45 deg
+    cut = notch_bottom(*layered("flower", tmp_path, edge_length=0.35 / 1.5, layers=2))
+    kept = notch_bottom(*layered("flower", tmp_path, edge_length=0.35 / 1.5, layers=2, outline="exact"))
+    assert cut > 0.62 and kept == pytest.approx(0.600, abs=1e-3)
+    assert config_key(MeshConfig()) == config_key(MeshConfig(outline="resampled"))   # old caches stay valid
+    assert config_key(MeshConfig(outline="exact")) != config_key(MeshConfig())

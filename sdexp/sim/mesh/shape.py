@@ -29,7 +29,7 @@ class Shape:
     # 3D plates: axes (0: x, 2: z) -> closed surface of the part on the positive side of the
     # mirror planes through the centre normal to them (drone.mesh.mirror, sdexp.sim.mesh.mirror)
     cell_surface: Optional[Callable[[tuple], tuple]] = None
-    # 3D plates: (edge, layers, mirror axes) -> (points, tets) extruded through the thickness
-    layered_mesh: Optional[Callable[[float, int, tuple], tuple]] = None
+    # 3D plates: (edge, layers, mirror axes, exact outline) -> (points, tets) extruded through the thickness
+    layered_mesh: Optional[Callable[[float, int, tuple, bool], tuple]] = None
     # a volume mesh (points, elements) given as such (drone.mesh.file of tets): used as it is
     volume_mesh: Optional[tuple] = None

@@ -65,14 +65,15 @@ def _union(*parts: Inside) -> Inside:
     return lambda p: np.logical_or.reduce([part(p) for part in parts])
 
 
-def _polar_outline(inside: Inside, r_max: float, key_angles: np.ndarray) -> np.ndarray:
-    """Closed outline (k, 2), counter-clockwise in (x, z), of a body star-shaped about 0.
+def _polar_outline(inside: Inside, r_max: float, key_angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed outline (k, 2), counter-clockwise in (x, z), of a body star-shaped about 0, and
+    the same outline as traced (rays about a millimetre apart: corners kept to that).
 
     Each sector between consecutive ``key_angles`` (lobe axes, symmetry axes) is resampled
     on its own with its ends kept, so lobe tips are outline points and a symmetric body gets
     a symmetric outline, whose bounding box is then exact and centred."""
     keys = np.sort(np.mod(key_angles, 2 * np.pi))
-    points = []
+    points, traced = [], []
     for a, b in zip(keys, np.r_[keys[1:], keys[0] + 2 * np.pi]):
         theta = np.linspace(a, b, int(np.ceil(2048 * (b - a) / np.pi)) + 1)
         ray = np.c_[np.cos(theta), np.sin(theta)]
@@ -82,11 +83,12 @@ def _polar_outline(inside: Inside, r_max: float, key_angles: np.ndarray) -> np.n
             ok = inside(mid[:, None] * ray)
             lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
         points.append(_resample(lo[:, None] * ray)[:-1])
-    return np.vstack(points)
+        traced.append((lo[:, None] * ray)[:-1])
+    return np.vstack(points), np.vstack(traced)
 
 
-def _circle(radius: float) -> np.ndarray:
-    n = 4 * max(4, int(np.ceil(np.pi * radius / (2 * _SEGMENT))))  # points on both axes
+def _circle(radius: float, segment: float = _SEGMENT) -> np.ndarray:
+    n = 4 * max(4, int(np.ceil(np.pi * radius / (2 * segment))))  # points on both axes
     t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     return radius * np.c_[np.cos(t), np.sin(t)]
 
@@ -124,6 +126,46 @@ def _resample_closed(loop: np.ndarray, spacing: float) -> np.ndarray:
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
     t = np.linspace(0.0, s[-1], max(8, int(round(s[-1] / spacing))), endpoint=False)
     return np.c_[np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])]
+
+
+def _corners(loop: np.ndarray, min_turn_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the corners of a traced closed polyline (where it turns by more than
+    ``min_turn_deg``; a corner between two rays shows as two or three turning vertices, the
+    sharpest kept) and whether each is re-entrant (turning against the loop's orientation)."""
+    d = np.diff(np.vstack([loop, loop[:1]]), axis=0)
+    d_in = np.roll(d, 1, axis=0)
+    turn = np.arctan2(d_in[:, 0] * d[:, 1] - d_in[:, 1] * d[:, 0], np.einsum("ij,ij->i", d_in, d))
+    sharp = np.abs(turn) > np.radians(min_turn_deg)
+    keep = sharp & (np.abs(turn) >= np.roll(np.abs(turn), 1)) & (np.abs(turn) >= np.roll(np.abs(turn), -1))
+    idx = np.flatnonzero(keep)
+    area = 0.5 * np.sum(loop[:, 0] * np.roll(loop[:, 1], -1) - np.roll(loop[:, 0], -1) * loop[:, 1])
+    return idx, np.sign(turn[idx]) != np.sign(area)
+
+
+def _graded_closed(loop: np.ndarray, spacing: float, finest: float = 0.25, growth: float = 0.3) -> np.ndarray:
+    """The traced closed polyline ``loop`` as points about ``spacing`` apart with its corners
+    kept as points and the spacing graded toward its re-entrant corners (``finest`` x spacing
+    there, growing by ``growth`` of the distance along the outline): where the stress of a
+    re-entrant corner concentrates, which a uniform mesh resolves last."""
+    closed = np.vstack([loop, loop[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    corners, reentrant = _corners(loop)
+    h = np.full(len(s), spacing)
+    for c in corners[reentrant]:   # distance along the closed outline, both ways round
+        dist = np.abs(s - s[c])
+        h = np.minimum(h, finest * spacing + growth * np.minimum(dist, s[-1] - dist))
+    # cumulative count of segments: points where it crosses integers (per piece between corners)
+    count = np.concatenate([[0.0], np.cumsum(np.diff(s) * 0.5 * (1 / h[1:] + 1 / h[:-1]))])
+    ends = np.r_[corners, corners[:1] + len(loop)] if len(corners) else np.array([0, len(loop)])
+    ends_s = np.r_[s[:-1], s[-1] + s]   # arc length and count over two turns of the loop
+    count2 = np.r_[count[:-1], count[-1] + count]
+    out = []
+    for a, b in zip(ends[:-1], ends[1:]):
+        n = max(1, int(round(count2[b] - count2[a])))
+        t = np.interp(np.linspace(count2[a], count2[b], n + 1)[:-1], count2[a:b + 1], ends_s[a:b + 1])
+        t = np.mod(t, s[-1])
+        out.append(np.c_[np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
+    return np.vstack(out)
 
 
 def _resample(line: np.ndarray) -> np.ndarray:
@@ -175,6 +217,7 @@ class _Design:
     profile: Callable[[float], Profile] | None = None   # rise -> g; None: flat
     rise: float = 0.0           # first guess of the mid-surface rise (curved drones)
     taper: Callable[[np.ndarray], np.ndarray] | None = None  # design points -> thickness fraction; None: 1
+    traced: list[np.ndarray] | None = None   # the loops as traced, corners kept (outline "exact"); None: loops
 
 
 class _Plate:
@@ -281,14 +324,21 @@ class _Plate:
         opts = f"pq30a{_CURVED_EDGE ** 2 * np.sqrt(3) / 4:.6f}" if self.d.profile or self.d.taper else "p"
         return self._closed(*self._planar_cell(cols, opts))
 
-    def _planar_cell(self, cols: list[int], options: str, spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _planar_cell(self, cols: list[int], options: str, spacing: float | None = None,
+                     exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Planar triangles of the part on the positive side of the planes c = 0 for c in
         ``cols`` (the whole outline when empty): the outline (resampled ``spacing`` apart, in
-        design coordinates, if given) split where it crosses a plane, the planes' chords
-        through the body constrained, so no triangle straddles a plane."""
+        design coordinates, if given; ``exact``: the traced outline, its corners kept and the
+        spacing graded toward the re-entrant ones) split where it crosses a plane, the planes'
+        chords through the body constrained, so no triangle straddles a plane."""
         if not np.all(np.abs(self.shift[cols]) < 1e-9):
             raise ValueError(f"{self.d.name}: the body is not centred across the mirror plane(s)")
-        loops = self.d.loops if spacing is None else [_resample_closed(loop, spacing) for loop in self.d.loops]
+        if spacing is None:
+            loops = self.d.loops
+        elif exact:
+            loops = [_graded_closed(loop, spacing) for loop in (self.d.traced or self.d.loops)]
+        else:
+            loops = [_resample_closed(loop, spacing) for loop in self.d.loops]
         points, segments = _closed_loops([_split_at_zero(loop, cols) for loop in loops])
         if self.d.profile or len(cols) == 2:   # the dome's peak, or where the two planes cross
             points = np.vstack([points, np.zeros((1, 2))])
@@ -306,16 +356,20 @@ class _Plate:
         centroid = planar[tris].mean(axis=1)
         return planar, tris[np.all(centroid[:, cols] > 0, axis=1)] if cols else tris
 
-    def layered_mesh(self, edge: float, layers: int, axes: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
+    def layered_mesh(self, edge: float, layers: int, axes: tuple[int, ...] = (),
+                     exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """A tet mesh that follows the plate: its outline triangulated (Triangle, quality 30
         deg, triangles of about ``edge`` on the fitted body) and extruded along the mid-surface
         normals through the thickness in ``layers`` layers, each prism cut into three tets
         (the diagonal of a side face from its lower-indexed bottom node, so neighbours agree).
         No slivers, so a larger stable step than fTetWild's mesh; deterministic. With ``axes``
-        only the cell on the positive side of the mirror planes (sdexp.sim.mesh.mirror reflects it)."""
+        only the cell on the positive side of the mirror planes (sdexp.sim.mesh.mirror reflects it).
+        ``exact`` (drone.mesh.outline): the design's outline with its corners, graded toward the
+        re-entrant ones (_graded_closed), not resampled evenly (which cuts a notch narrower
+        than ``edge``: the flower's notch bottoms at 0.63-0.69 m from the centre, not 0.60)."""
         cols = [{0: 0, 2: 1}[a] for a in axes]
         area = edge ** 2 * np.sqrt(3) / 4 / self.scale.prod()   # in design coordinates
-        planar, tris = self._planar_cell(cols, f"pq30a{area:.8f}", edge / np.sqrt(self.scale.prod()))
+        planar, tris = self._planar_cell(cols, f"pq30a{area:.8f}", edge / np.sqrt(self.scale.prod()), exact)
         used, tris = np.unique(tris, return_inverse=True)
         planar, tris = planar[used], tris.reshape(-1, 3)
         q = planar * self.scale + self.shift
@@ -464,10 +518,10 @@ def _hub_with_lobes(name, size, thickness, num_rotors, num_sensors, p, keys, lob
         raise ValueError(f"{name}: params.lobe_thickness = {p['lobe_thickness']} and params.thin_from = "
                          f"{p['thin_from']} must be in (0, 1] (fractions of the hub's thickness and radius)")
     body = _lobes(name, hub, angles, root, tip, length)
-    design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [],
-                     _thickness(name, size, thickness),
+    outline, traced = _polar_outline(body, 2 * length, angles)
+    design = _Design(name, body, [outline], [], _thickness(name, size, thickness),
                      taper=_lobe_taper(p["thin_from"] * hub, 0.25 * (length - hub), p["lobe_thickness"])
-                     if p["lobe_thickness"] != 1 else None)
+                     if p["lobe_thickness"] != 1 else None, traced=[traced])
     radii = np.r_[0.0, np.full(len(angles), length - p["rotor_inset"])]
     return _finish(_Plate(design, size), radii, np.r_[0.0, angles], num_sensors)
 
@@ -499,8 +553,9 @@ def make_octopus(size, thickness, num_rotors, num_sensors, params) -> Shape:
     length, angles = 0.5 * float(size[0]), _angles(8)
     body = _lobes(name, p["head_radius"], angles, p["arm_root_width"], p["arm_tip_width"], length)
     t = _thickness(name, size, thickness, curved_default=0.15)
-    design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [], t,
-                     _dome(p["head_radius"]), float(size[1]) - t)
+    outline, traced = _polar_outline(body, 2 * length, angles)
+    design = _Design(name, body, [outline], [], t, _dome(p["head_radius"]), float(size[1]) - t,
+                     traced=[traced])
     radii = np.r_[0.0, np.full(len(angles), length - p["rotor_inset"])]
     return _finish(_Plate(design, size), radii, np.r_[0.0, angles], num_sensors)
 
@@ -518,8 +573,9 @@ def make_orange_peel(size, thickness, num_rotors, num_sensors, params) -> Shape:
     length, angles = (float(size[2]) - 0.5 * w * (1 - cos36)) / (1 + cos36), _angles(5, np.pi / 2)
     body = _lobes(name, p["base_radius"], angles, p["petal_root_width"], p["petal_width"], length)
     t = _thickness(name, size, thickness, curved_default=0.1)
-    design = _Design(name, body, [_polar_outline(body, 2 * length, angles)], [], t,
-                     _bowl(p["base_radius"], length - p["base_radius"]), float(size[1]) - t)
+    outline, traced = _polar_outline(body, 2 * length, angles)
+    design = _Design(name, body, [outline], [], t, _bowl(p["base_radius"], length - p["base_radius"]),
+                     float(size[1]) - t, traced=[traced])
     return _finish(_Plate(design, size), np.full(5, length - p["rotor_inset"]), angles, num_sensors)
 
 
@@ -538,7 +594,8 @@ def make_donut(size, thickness, num_rotors, num_sensors, params) -> Shape:
         r = np.hypot(q[:, 0], q[:, 1])
         return (r >= hole) & (r <= outer)
     design = _Design(name, ring, [_circle(outer), _circle(hole)[::-1]], [(0.0, 0.0)],
-                     _thickness(name, size, thickness))
+                     _thickness(name, size, thickness),
+                     traced=[_circle(outer, 1e-3), _circle(hole, 1e-3)[::-1]])
     return _finish(_Plate(design, size), np.full(4, 0.5 * (outer + hole)), _angles(4), num_sensors,
                    ring_frame=True)
 
@@ -553,8 +610,8 @@ def make_leaf(size, thickness, num_rotors, num_sensors, params) -> Shape:
 
     def blade(q: np.ndarray) -> np.ndarray:
         return np.abs(q[:, 0]) <= half_w * (1 - np.minimum((q[:, 1] / half_l) ** 2, 1))
-    design = _Design(name, blade, [_polar_outline(blade, 2 * max(half_w, half_l), _angles(4))], [],
-                     _thickness(name, size, thickness))
+    outline, traced = _polar_outline(blade, 2 * max(half_w, half_l), _angles(4))
+    design = _Design(name, blade, [outline], [], _thickness(name, size, thickness), traced=[traced])
     radii = np.array([p["rotor_x"], p["rotor_z"], p["rotor_x"], p["rotor_z"]])
     return _finish(_Plate(design, size), radii, _angles(4), num_sensors)
 
