@@ -119,11 +119,16 @@ def centred_weights(drone, r: int) -> np.ndarray:
         faces = faces[:, :2]
     w = np.bincount(np.searchsorted(verts, faces.ravel()), share, len(verts))
     fem = drone.fem
-    if fem.order == 2:   # a uniform traction's consistent load on a 6-node face (3D) is all on
-        w[verts < fem.elems[:, fem.dim + 1:].min()] = 0.0   # its mid-edge nodes (corners 0,
-        # mid-edges A/3); shared among corners too, it left a bump whose energy fell like h
+    if fem.order == 2:   # a uniform traction's consistent load: on a 6-node face all on the
+        # mid-edge nodes (A/3 each, corners 0), on a 3-node edge L/6 at the ends and 2L/3 in the
+        # middle; a share of the sub-faces gives the corners more (a bump whose energy fell like h)
+        corner = verts < fem.elems[:, fem.dim + 1:].min()
+        w *= np.where(corner, 0.0 if fem.dim == 3 else 2 / 3, 4 / 3)
     w /= w.sum()
-    A = np.vstack([np.ones(len(verts)), (x[verts] - rot.anchors[r]).T])   # sum, first moments
+    # the centroid onto the anchor across the thrust (along it the patch follows the surface)
+    n = rot.normals[r]
+    tangents = np.linalg.svd(n[None])[2][1:]
+    A = np.vstack([np.ones(len(verts)), tangents @ (x[verts] - rot.anchors[r]).T])
     b = np.zeros(len(A))
     b[0] = 1.0
     dw = w * (A.T @ np.linalg.lstsq((A * w) @ A.T, b - A @ w, rcond=None)[0])
