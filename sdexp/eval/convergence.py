@@ -47,8 +47,8 @@ from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
 from sdexp.sim.rigid.statics import outer_rotors
 
-FORMAT = 8   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields;
-             # 8: exact outlines, layers with r, the balanced load's work, free-free frequencies
+FORMAT = 9   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields;
+             # 8-9: exact outlines, layers with r, the disc load, the balanced load's work, free-free frequencies
 MODES = 8    # free-free frequencies compared
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
                            # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)
@@ -100,61 +100,94 @@ def load_thrusts(drone, gravity: float, load: float) -> np.ndarray:
     return hover_thrust(mass, rot.anchors - com, rot.normals, gravity) + load * outer_rotors(drone)
 
 
-def centred_weights(drone, r: int) -> np.ndarray:
-    """Rotor r's patch weights for a load that converges with the mesh: each patch face's area
-    shared among its nodes (a uniform traction, not the simulator's equal share per vertex),
-    then the least change (relative to each weight) that puts the load's centroid on the
-    anchor. The simulator's patches carry their thrust up to 7 cm off the anchor on the default
-    flower and 1-2 cm on its refinements, which moved the references' compliance by +-4% from
-    one refinement to the next (the petals' lever)."""
-    rot, x = drone.rotors, drone.fem.rest
-    faces = rot.faces[rot.face_ptr[r]:rot.face_ptr[r + 1]]
-    verts = rot.verts[rot.vert_ptr[r]:rot.vert_ptr[r + 1]]
-    p = x[faces]
-    if drone.fem.dim == 3:
-        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-        share = np.repeat(area / 3, 3)
-    else:   # segments, stored (k, 3) with the first node repeated
-        share = np.repeat(0.5 * np.linalg.norm(p[:, 1] - p[:, 0], axis=1), 2)
-        faces = faces[:, :2]
-    w = np.bincount(np.searchsorted(verts, faces.ravel()), share, len(verts))
-    fem = drone.fem
-    if fem.order == 2:   # a uniform traction's consistent load: on a 6-node face all on the
-        # mid-edge nodes (A/3 each, corners 0), on a 3-node edge L/6 at the ends and 2L/3 in the
-        # middle; a share of the sub-faces gives the corners more (a bump whose energy fell like h)
-        corner = verts < fem.elems[:, fem.dim + 1:].min()
-        w *= np.where(corner, 0.0 if fem.dim == 3 else 2 / 3, 4 / 3)
-    w /= w.sum()
-    # the centroid onto the anchor across the thrust (along it the patch follows the surface)
-    n = rot.normals[r]
-    tangents = np.linalg.svd(n[None])[2][1:]
-    A = np.vstack([np.ones(len(verts)), tangents @ (x[verts] - rot.anchors[r]).T])
-    b = np.zeros(len(A))
-    b[0] = 1.0
-    dw = w * (A.T @ np.linalg.lstsq((A * w) @ A.T, b - A @ w, rcond=None)[0])
-    return w + dw
+def _faces_with_mid_nodes(fem: FemModel) -> np.ndarray:
+    """The corner faces of the boundary (k, 3 | 2) and, for quadratic elements, their mid-edge
+    nodes after them: (a, b, c, ab, bc, ca) in 3D, (a, b, ab) in 2D."""
+    from sdexp.sim.mesh.surface import boundary_faces
+    from sdexp.sim.physics.quadratic import EDGES_2D, EDGES_3D
+    faces = boundary_faces(fem.elems[:, :fem.dim + 1])
+    if fem.order == 1:
+        return faces
+    local = EDGES_3D if fem.dim == 3 else EDGES_2D
+    ends = np.sort(fem.elems[:, local], axis=2).reshape(-1, 2)
+    lookup = dict(zip(map(tuple, ends.tolist()), fem.elems[:, fem.dim + 1:].ravel().tolist()))
+    pairs = [(0, 1), (1, 2), (2, 0)] if fem.dim == 3 else [(0, 1)]
+    mids = [[lookup[tuple(sorted((f[i], f[j])))] for i, j in pairs] for f in faces.tolist()]
+    return np.c_[faces, np.array(mids, dtype=faces.dtype)]
 
 
-def fixed_load(drone, gravity: float, load: float, centred: bool = False) -> np.ndarray:
+def _face_shapes(dim: int, order: int, m: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points of a face (barycentric, (q, dim)), equal weights, centroids of an m-fold
+    subdivision; and the face's shape functions there (q, nodes), in _faces_with_mid_nodes' order."""
+    if dim == 3:
+        bary = []
+        for i in range(m):
+            for j in range(m - i):
+                bary.append([(i + 1 / 3) / m, (j + 1 / 3) / m])             # upright sub-triangles
+                if i + j < m - 1:
+                    bary.append([(i + 2 / 3) / m, (j + 2 / 3) / m])         # and the inverted ones
+        bary = np.array(bary)
+        lam = np.c_[1 - bary.sum(axis=1), bary]
+        if order == 1:
+            return lam, lam
+        return lam, np.c_[lam * (2 * lam - 1), 4 * lam[:, 0] * lam[:, 1], 4 * lam[:, 1] * lam[:, 2],
+                          4 * lam[:, 2] * lam[:, 0]]
+    t = (np.arange(m) + 0.5) / m
+    lam = np.c_[1 - t, t]
+    return lam, lam if order == 1 else np.c_[lam * (2 * lam - 1), 4 * lam[:, 0] * lam[:, 1]]
+
+
+def disc_weights(drone, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotor r's thrust as the references carry it: a uniform traction over exactly the disc of
+    the patch radius about the anchor (the surface facing the thrust within that distance),
+    integrated with the faces' own shape functions: a load that converges with the mesh. The
+    simulator's patches instead share the thrust equally among the vertices of the faces whose
+    centroid falls inside, 1-7 cm off the anchor on the flower's meshes: the references'
+    compliance then moved by +-4% from one refinement to the next, and a patch's discrete edge
+    set how much it indents. Returns (nodes, weights summing to 1)."""
+    rot, fem = drone.rotors, drone.fem
+    x, a, n, radius = fem.rest, rot.anchors[r], rot.normals[r], float(rot.radius)
+    faces = _faces_with_mid_nodes(fem)
+    corners = x[faces[:, :fem.dim]]
+    if fem.dim == 3:
+        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        size = 0.5 * np.linalg.norm(normal, axis=1)
+    else:
+        t = corners[:, 1] - corners[:, 0]
+        normal, size = np.c_[t[:, 1], -t[:, 0]], np.linalg.norm(t, axis=1)
+    facing = normal @ n > 0.5 * np.linalg.norm(normal, axis=1)
+    reach = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
+    near = facing & (np.linalg.norm(corners.mean(axis=1) - a, axis=1) <= radius + reach)
+    lam, shape = _face_shapes(fem.dim, fem.order)
+    pts = np.einsum("qc,kcd->kqd", lam, corners[near])                      # (k, q, dim)
+    inside = np.linalg.norm(pts - a, axis=2) <= radius
+    load = np.einsum("kq,qn->kn", inside * (size[near] / len(lam))[:, None], shape)
+    nodes, idx = np.unique(faces[near], return_inverse=True)
+    w = np.bincount(idx.ravel(), load.ravel(), len(nodes))
+    keep = w != 0
+    return nodes[keep], w[keep] / w.sum()
+
+
+def fixed_load(drone, gravity: float, load: float, disc: bool = False) -> np.ndarray:
     """Nodal forces (nv, dim) of the module's load. The thrusts come from the design (its rotor
     anchors and normals, not the mesh's patch normals) so that every mesh of a drone carries the
     same load: hover_thrust's choice between thrust patterns turns on how far the rotors tilt,
     and a patch normal a degree off on one mesh flipped the octopus's head rotor between 0 and
     1.1 N (its compliance jumped 20% between neighbouring refinements). Spread over each patch
-    as the simulator spreads it, or ``centred`` (centred_weights: the references' load)."""
+    as the simulator spreads it, or ``disc`` (disc_weights: the references' load)."""
     fem, rot = drone.fem, drone.rotors
     u = load_thrusts(drone, gravity, load)
     f = np.zeros_like(fem.rest)
     f[:, 1] -= fem.mass * gravity
     for r in range(rot.count):
         k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
-        w = centred_weights(drone, r) if centred else rot.weights[k]
-        np.add.at(f, rot.verts[k], u[r] * w[:, None] * rot.normals[r])
+        nodes, w = disc_weights(drone, r) if disc else (rot.verts[k], rot.weights[k])
+        np.add.at(f, nodes, u[r] * w[:, None] * rot.normals[r])
     return f
 
 
 def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int = MODES,
-                    centred: bool = False) -> dict:
+                    disc: bool = False) -> dict:
     """Under the fixed load, static and linear: ``bend``, the RMS bend (deg) of the peripheral
     IMUs as the sensor pipeline reads it, and ``compliance``, the work of the balanced load
     fb . u (J): the stiffness of the whole body (for one load a conforming mesh underestimates
@@ -166,7 +199,7 @@ def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int 
     And ``freq``, the first ``modes`` free-free frequencies (Hz, HRZ-lumped mass as simulated):
     a yardstick that no load or patch placement enters."""
     fem = drone.fem
-    fb = balanced(fem, fixed_load(drone, gravity, load, centred))
+    fb = balanced(fem, fixed_load(drone, gravity, load, disc))
     u = static_displacement(fem, fb)
     out = {"compliance": float(np.sum(fb * u)), "bend": float("nan"),
            "freq": free_frequencies(fem, k=modes)}
@@ -230,11 +263,13 @@ def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravit
                "gravity": gravity, "load": load, "element": element, "modes": MODES}
 
     def make():
+        from sdexp.log import Phase
         rows, freqs = [], []
-        for r in refine:
+        for r in Phase(f"converged reference of {drone_cfg.name} ({element}, {len(refine)} meshes)",
+                       len(refine), "meshes").iterate(refine):
             cfg = replace(drone_cfg, mesh=refined(drone_cfg.mesh, r, int(drone_cfg.dim)))
             drone = build_drone(cfg, cache_dir, element)
-            res = static_response(drone, gravity, load, centred=True)
+            res = static_response(drone, gravity, load, disc=True)
             rows.append([element_size(drone), drone.fem.n_elems, res["bend"], res["compliance"]])
             freqs.append(res["freq"])
         h, n, bend, compliance = np.array(rows).T
@@ -256,15 +291,15 @@ def response_errors(drone, reference: dict, gravity: float = 9.81, load: float =
     compliance, lower for a frequency; a too stiff mesh bends less and rings higher), with the
     reference's own uncertainty. The bend and compliance under the load as the simulator
     spreads it over its patches (``<q>_error``: as flown) and as the references spread it
-    (``<q>_centred_error``: the elements' share of the error). The frequencies as ``freq_error`` (the first mode's),
+    (``<q>_disc_error``: the elements' share of the error). The frequencies as ``freq_error`` (the first mode's),
     ``freq_error_max`` (the largest in size of the first MODES, signed) and ``freq_errors``."""
     res = static_response(drone, gravity, load)
-    centred = static_response(drone, gravity, load, modes=1, centred=True)
+    disc = static_response(drone, gravity, load, modes=1, disc=True)
     out = {}
     for q in ("bend", "compliance"):
         ref = reference[f"{q}_converged"]
         out.update({q: res[q], f"{q}_converged": ref, f"{q}_error": res[q] / ref - 1,
-                    f"{q}_centred_error": centred[q] / ref - 1,
+                    f"{q}_disc_error": disc[q] / ref - 1,
                     f"{q}_reference_uncertainty": reference[f"{q}_uncertainty"] / abs(ref)})
     ref = np.asarray(reference["freq_converged"])
     err = res["freq"] / ref - 1

@@ -18,6 +18,7 @@ from sdexp.sim.mesh.surface import boundary_faces, patch_faces
 
 MESH_FORMAT = 2      # 2: the key holds every drone.mesh field (sdexp.cache.config_key)
 LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
+EXACT_OUTLINE_FORMAT = 1   # bump when shapes3d._graded_closed changes what it makes
 
 
 @dataclass
@@ -32,6 +33,7 @@ class RotorPatches:
     anchors: np.ndarray   # (m, dim) rest anchor points of the design
     normals: np.ndarray   # (m, dim) the design's unit thrust directions there (the mesh's patch
                           # normals approach them; sdexp.eval.convergence loads along these)
+    radius: float = 0.0   # the faces' centroids are within this of the anchor (drone.rotor_radius)
 
     @property
     def count(self) -> int:
@@ -97,6 +99,8 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str, name: str = "") -> tuple[np.n
     layers = int(mesh.layers)
     payload = {"v": shape.vertices.round(12).tolist(), "f": shape.faces.tolist(),
                "h": shape.holes.round(12).tolist(), "mesh": config_key(mesh), "layered": LAYERED_FORMAT}
+    if mesh.outline == "exact":   # keyed apart so that the drones' own meshes keep their keys
+        payload["exact_outline"] = EXACT_OUTLINE_FORMAT
     if layers and shape.layered_mesh is None:
         raise UserError(f"drone.mesh.layers = {layers}: the {shape.dim}D shape is not a plate; set it to 0")
     if planes:
@@ -168,7 +172,7 @@ def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatch
     weights = np.concatenate([np.full(len(v), 1.0 / len(v)) for v in vert_lists])
     normals = np.asarray(normals, dtype=float)
     return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), weights, np.asarray(anchors),
-                        normals / np.linalg.norm(normals, axis=1, keepdims=True))
+                        normals / np.linalg.norm(normals, axis=1, keepdims=True), float(radius))
 
 
 def build_drone(cfg, cache_dir: str, element: str) -> Drone:

@@ -142,15 +142,28 @@ def _corners(loop: np.ndarray, min_turn_deg: float = 10.0) -> tuple[np.ndarray, 
     return idx, np.sign(turn[idx]) != np.sign(area)
 
 
-def _graded_closed(loop: np.ndarray, spacing: float, finest: float = 0.25, growth: float = 0.3) -> np.ndarray:
+def _graded_closed(loop: np.ndarray, spacing: float, finest: float = 0.25, growth: float = 0.3,
+                   sagitta: float = 1e-3) -> np.ndarray:
     """The traced closed polyline ``loop`` as points about ``spacing`` apart with its corners
-    kept as points and the spacing graded toward its re-entrant corners (``finest`` x spacing
-    there, growing by ``growth`` of the distance along the outline): where the stress of a
-    re-entrant corner concentrates, which a uniform mesh resolves last."""
+    kept as points, the spacing graded toward its re-entrant corners (``finest`` x spacing
+    there, growing by ``growth`` of the distance along the outline: where the stress of a
+    re-entrant corner concentrates, which a uniform mesh resolves last) and short enough on
+    curved stretches that a chord stays within ``sagitta`` of the arc (design units): every
+    refinement then meshes the same body. (Chords 0.23 m long cut 1.6 cm off the flower's petal
+    tips: its volume grew 3.4% from edge 0.35 to 0.12 m, and its compliance fell with it.)"""
     closed = np.vstack([loop, loop[:1]])
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
     corners, reentrant = _corners(loop)
-    h = np.full(len(s), spacing)
+    d = np.diff(closed, axis=0)
+    turn = np.abs(np.arctan2(np.roll(d, 1, axis=0)[:, 0] * d[:, 1] - np.roll(d, 1, axis=0)[:, 1] * d[:, 0],
+                             np.einsum("ij,ij->i", np.roll(d, 1, axis=0), d)))
+    turn[corners] = 0.0                            # a corner is a point of the outline, not a bend
+    ds = 0.5 * (np.linalg.norm(d, axis=1) + np.linalg.norm(np.roll(d, 1, axis=0), axis=1))
+    window = np.ones(9) / 9                        # curvature over a few rays (the trace is noisy)
+    kappa = np.convolve(np.r_[turn[-4:], turn, turn[:4]], window, "valid") / np.maximum(
+        np.convolve(np.r_[ds[-4:], ds, ds[:4]], window, "valid"), 1e-12)
+    h = np.minimum(spacing, np.sqrt(8 * sagitta / np.maximum(kappa, 1e-12)))
+    h = np.r_[h, h[:1]]
     for c in corners[reentrant]:   # distance along the closed outline, both ways round
         dist = np.abs(s - s[c])
         h = np.minimum(h, finest * spacing + growth * np.minimum(dist, s[-1] - dist))
