@@ -108,7 +108,7 @@ def run(run: Run) -> dict:
         ref = converged_response(base, cfg.cache_dir, refine, gravity, load)
         for element in elements:
             edges = list(p.scaling_edges[element])
-            for edge in Phase(f"bench_sim {scaling} {element}", len(edges), "meshes").iterate(edges):
+            for edge in Phase(f"bench_sim {scaling} {element}", len(edges), "mesh sizes").iterate(edges):
                 d = with_edge(base, edge)
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),

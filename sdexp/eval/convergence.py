@@ -266,7 +266,7 @@ def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravit
         from sdexp.log import Phase
         rows, freqs = [], []
         for r in Phase(f"converged reference of {drone_cfg.name} ({element}, {len(refine)} meshes)",
-                       len(refine), "meshes").iterate(refine):
+                       len(refine), "refinements").iterate(refine):
             cfg = replace(drone_cfg, mesh=refined(drone_cfg.mesh, r, int(drone_cfg.dim)))
             drone = build_drone(cfg, cache_dir, element)
             res = static_response(drone, gravity, load, disc=True)

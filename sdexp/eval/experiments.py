@@ -283,6 +283,8 @@ def _run_in(out_dir: Path, config: Config, fn: Callable, resolved: dict, overrid
     log.info(f"sdexp: {name} (seed {config.seed}) on {cores} core{'s' if cores > 1 else ''}"
              + (f", {jobs} jobs side by side" if jobs > 1 else "")
              + (f" ({', '.join(changed)})" if changed else "") + f" -> {out_dir}")
+    from sdexp.provenance import source
+    log.info(f"sdexp: code: {source()}")
     with limited_threads(cores):
         metrics = fn(Run(config, out_dir))
     write_json(done, metrics)
