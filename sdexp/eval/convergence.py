@@ -104,16 +104,13 @@ def _faces_with_mid_nodes(fem: FemModel) -> np.ndarray:
     """The corner faces of the boundary (k, 3 | 2) and, for quadratic elements, their mid-edge
     nodes after them: (a, b, c, ab, bc, ca) in 3D, (a, b, ab) in 2D."""
     from sdexp.sim.mesh.surface import boundary_faces
-    from sdexp.sim.physics.quadratic import EDGES_2D, EDGES_3D
+    from sdexp.sim.physics.quadratic import mid_nodes
     faces = boundary_faces(fem.elems[:, :fem.dim + 1])
     if fem.order == 1:
         return faces
-    local = EDGES_3D if fem.dim == 3 else EDGES_2D
-    ends = np.sort(fem.elems[:, local], axis=2).reshape(-1, 2)
-    lookup = dict(zip(map(tuple, ends.tolist()), fem.elems[:, fem.dim + 1:].ravel().tolist()))
+    mid = mid_nodes(fem.elems)
     pairs = [(0, 1), (1, 2), (2, 0)] if fem.dim == 3 else [(0, 1)]
-    mids = [[lookup[tuple(sorted((f[i], f[j])))] for i, j in pairs] for f in faces.tolist()]
-    return np.c_[faces, np.array(mids, dtype=faces.dtype)]
+    return np.c_[faces, np.stack([mid(faces[:, i], faces[:, j]) for i, j in pairs], axis=1)]
 
 
 def _face_shapes(dim: int, order: int, m: int = 12) -> tuple[np.ndarray, np.ndarray]:

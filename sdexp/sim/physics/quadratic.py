@@ -78,18 +78,23 @@ def lumped_mass(n_nodes: int, elems: np.ndarray, element_mass: np.ndarray) -> np
     return mass
 
 
+def mid_nodes(elems: np.ndarray):
+    """For quadratic elems (ne, 10 | 6): mid(a, b), the mid-edge nodes of the corner pairs
+    (a[i], b[i]) (arrays of corner indices, either order)."""
+    local = EDGES_3D if elems.shape[1] == 10 else EDGES_2D
+    ends = np.sort(elems[:, local], axis=2).reshape(-1, 2)
+    lookup = dict(zip(map(tuple, ends.tolist()), elems[:, local.max() + 1:].ravel().tolist()))
+
+    def mid(a, b):
+        return np.array([lookup[(min(p, q), max(p, q))] for p, q in zip(a, b)], dtype=np.asarray(a).dtype)
+    return mid
+
+
 def boundary_subfaces(corner_faces: np.ndarray, elems: np.ndarray) -> np.ndarray:
     """The boundary of a quadratic mesh as linear pieces through its mid-edge nodes: each corner
     triangle (a, b, c) as four (3D), each corner segment (a, b) as two (2D), orientation kept.
     Rotor normals, IMU frames and surface areas then see the mid-edge nodes too."""
-    local = EDGES_3D if elems.shape[1] == 10 else EDGES_2D
-    nc = local.max() + 1
-    ends = np.sort(elems[:, local], axis=2).reshape(-1, 2)
-    nodes = elems[:, nc:].ravel()
-    lookup = dict(zip(map(tuple, ends.tolist()), nodes.tolist()))
-
-    def mid(a, b):
-        return np.array([lookup[(min(p, q), max(p, q))] for p, q in zip(a, b)], dtype=corner_faces.dtype)
+    mid = mid_nodes(elems)
     if corner_faces.shape[1] == 2:
         a, b = corner_faces.T
         m = mid(a, b)
