@@ -142,23 +142,19 @@ def disc_weights(drone, r: int) -> tuple[np.ndarray, np.ndarray]:
     centroid falls inside, 1-7 cm off the anchor on the flower's meshes: the references'
     compliance then moved by +-4% from one refinement to the next, and a patch's discrete edge
     set how much it indents. Returns (nodes, weights summing to 1)."""
+    from sdexp.sim.mesh.surface import face_normals, patch_faces
     rot, fem = drone.rotors, drone.fem
-    x, a, n, radius = fem.rest, rot.anchors[r], rot.normals[r], float(rot.radius)
+    x, a, radius = fem.rest, rot.anchors[r], float(rot.radius)
     faces = _faces_with_mid_nodes(fem)
-    corners = x[faces[:, :fem.dim]]
-    if fem.dim == 3:
-        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        size = 0.5 * np.linalg.norm(normal, axis=1)
-    else:
-        t = corners[:, 1] - corners[:, 0]
-        normal, size = np.c_[t[:, 1], -t[:, 0]], np.linalg.norm(t, axis=1)
-    facing = normal @ n > 0.5 * np.linalg.norm(normal, axis=1)
-    reach = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
-    near = facing & (np.linalg.norm(corners.mean(axis=1) - a, axis=1) <= radius + reach)
+    corner_faces = faces[:, :fem.dim]
+    corners = x[corner_faces]
+    reach = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max()
+    near = patch_faces(x, corner_faces, a, rot.normals[r], radius + reach)   # every face the disc touches
+    size = np.linalg.norm(face_normals(x, corner_faces[near]), axis=1)      # area (3D), length (2D)
     lam, shape = _face_shapes(fem.dim, fem.order)
     pts = np.einsum("qc,kcd->kqd", lam, corners[near])                      # (k, q, dim)
     inside = np.linalg.norm(pts - a, axis=2) <= radius
-    load = np.einsum("kq,qn->kn", inside * (size[near] / len(lam))[:, None], shape)
+    load = np.einsum("kq,qn->kn", inside * (size / len(lam))[:, None], shape)
     nodes, idx = np.unique(faces[near], return_inverse=True)
     w = np.bincount(idx.ravel(), load.ravel(), len(nodes))
     keep = w != 0
@@ -193,13 +189,14 @@ def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int 
     unbalanced load dotted with u did: -9% to +20% of it). The bend is what the controller sees,
     but it is read from the few surface nodes inside each IMU patch; where it is below a degree
     (the compact 2D drones) which nodes fall inside moves it by more than the elements do.
-    And ``freq``, the first ``modes`` free-free frequencies (Hz, HRZ-lumped mass as simulated):
-    a yardstick that no load or patch placement enters."""
+    And ``freq``, the first ``modes`` free-free frequencies (Hz, HRZ-lumped mass as simulated;
+    none for 0): a yardstick that no load or patch placement enters."""
     fem = drone.fem
     fb = balanced(fem, fixed_load(drone, gravity, load, disc))
     u = static_displacement(fem, fb)
-    out = {"compliance": float(np.sum(fb * u)), "bend": float("nan"),
-           "freq": free_frequencies(fem, k=modes)}
+    out = {"compliance": float(np.sum(fb * u)), "bend": float("nan")}
+    if modes:
+        out["freq"] = free_frequencies(fem, k=modes)
     if drone.layout.n_s:
         eps = 1e-4 * np.ptp(fem.rest, axis=0).max() / max(np.abs(u).max(), 1e-300)
         x = fem.rest + eps * u
@@ -291,7 +288,7 @@ def response_errors(drone, reference: dict, gravity: float = 9.81, load: float =
     (``<q>_disc_error``: the elements' share of the error). The frequencies as ``freq_error`` (the first mode's),
     ``freq_error_max`` (the largest in size of the first MODES, signed) and ``freq_errors``."""
     res = static_response(drone, gravity, load)
-    disc = static_response(drone, gravity, load, modes=1, disc=True)
+    disc = static_response(drone, gravity, load, modes=0, disc=True)
     out = {}
     for q in ("bend", "compliance"):
         ref = reference[f"{q}_converged"]

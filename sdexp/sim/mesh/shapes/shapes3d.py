@@ -128,13 +128,18 @@ def _resample_closed(loop: np.ndarray, spacing: float) -> np.ndarray:
     return np.c_[np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])]
 
 
+def _turns(loop: np.ndarray) -> np.ndarray:
+    """The signed angle a closed polyline turns by at each vertex (counter-clockwise > 0)."""
+    d = np.diff(np.vstack([loop, loop[:1]]), axis=0)
+    d_in = np.roll(d, 1, axis=0)
+    return np.arctan2(d_in[:, 0] * d[:, 1] - d_in[:, 1] * d[:, 0], np.einsum("ij,ij->i", d_in, d))
+
+
 def _corners(loop: np.ndarray, min_turn_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
     """Indices of the corners of a traced closed polyline (where it turns by more than
     ``min_turn_deg``; a corner between two rays shows as two or three turning vertices, the
     sharpest kept) and whether each is re-entrant (turning against the loop's orientation)."""
-    d = np.diff(np.vstack([loop, loop[:1]]), axis=0)
-    d_in = np.roll(d, 1, axis=0)
-    turn = np.arctan2(d_in[:, 0] * d[:, 1] - d_in[:, 1] * d[:, 0], np.einsum("ij,ij->i", d_in, d))
+    turn = _turns(loop)
     sharp = np.abs(turn) > np.radians(min_turn_deg)
     keep = sharp & (np.abs(turn) >= np.roll(np.abs(turn), 1)) & (np.abs(turn) >= np.roll(np.abs(turn), -1))
     idx = np.flatnonzero(keep)
@@ -152,13 +157,12 @@ def _graded_closed(loop: np.ndarray, spacing: float, finest: float = 0.25, growt
     refinement then meshes the same body. (Chords 0.23 m long cut 1.6 cm off the flower's petal
     tips: its volume grew 3.4% from edge 0.35 to 0.12 m, and its compliance fell with it.)"""
     closed = np.vstack([loop, loop[:1]])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
     corners, reentrant = _corners(loop)
-    d = np.diff(closed, axis=0)
-    turn = np.abs(np.arctan2(np.roll(d, 1, axis=0)[:, 0] * d[:, 1] - np.roll(d, 1, axis=0)[:, 1] * d[:, 0],
-                             np.einsum("ij,ij->i", np.roll(d, 1, axis=0), d)))
+    turn = np.abs(_turns(loop))
     turn[corners] = 0.0                            # a corner is a point of the outline, not a bend
-    ds = 0.5 * (np.linalg.norm(d, axis=1) + np.linalg.norm(np.roll(d, 1, axis=0), axis=1))
+    ds = 0.5 * (seg + np.roll(seg, 1))             # the outline's length per vertex
     window = np.ones(9) / 9                        # curvature over a few rays (the trace is noisy)
     kappa = np.convolve(np.r_[turn[-4:], turn, turn[:4]], window, "valid") / np.maximum(
         np.convolve(np.r_[ds[-4:], ds, ds[:4]], window, "valid"), 1e-12)
