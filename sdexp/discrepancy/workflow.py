@@ -44,7 +44,8 @@ from sdexp.run import Run
 log = logging.getLogger(__name__)
 
 
-FLOOR_FORMAT = 4   # 3: the configs' key fields (sdexp.cache.config_key); 4: the floor windows' flights kept
+FLOOR_FORMAT = 5   # 3: the configs' key fields (sdexp.cache.config_key); 4: the floor windows' flights kept;
+                   # 5: rotor thrust as a traction over its disc (sim.mesh.traction)
 
 
 def steps_of(dcfg, dt: float, history: float) -> tuple[int, int, int]:

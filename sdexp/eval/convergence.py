@@ -100,91 +100,29 @@ def load_thrusts(drone, gravity: float, load: float) -> np.ndarray:
     return hover_thrust(mass, rot.anchors - com, rot.normals, gravity) + load * outer_rotors(drone)
 
 
-def _faces_with_mid_nodes(fem: FemModel) -> np.ndarray:
-    """The corner faces of the boundary (k, 3 | 2) and, for quadratic elements, their mid-edge
-    nodes after them: (a, b, c, ab, bc, ca) in 3D, (a, b, ab) in 2D."""
-    from sdexp.sim.mesh.surface import boundary_faces
-    from sdexp.sim.physics.quadratic import mid_nodes
-    faces = boundary_faces(fem.elems[:, :fem.dim + 1])
-    if fem.order == 1:
-        return faces
-    mid = mid_nodes(fem.elems)
-    pairs = [(0, 1), (1, 2), (2, 0)] if fem.dim == 3 else [(0, 1)]
-    return np.c_[faces, np.stack([mid(faces[:, i], faces[:, j]) for i, j in pairs], axis=1)]
-
-
-def _face_shapes(dim: int, order: int, m: int = 12) -> tuple[np.ndarray, np.ndarray]:
-    """Sample points of a face (barycentric, (q, dim)), equal weights, centroids of an m-fold
-    subdivision; and the face's shape functions there (q, nodes), in _faces_with_mid_nodes' order."""
-    if dim == 3:
-        bary = []
-        for i in range(m):
-            for j in range(m - i):
-                bary.append([(i + 1 / 3) / m, (j + 1 / 3) / m])             # upright sub-triangles
-                if i + j < m - 1:
-                    bary.append([(i + 2 / 3) / m, (j + 2 / 3) / m])         # and the inverted ones
-        bary = np.array(bary)
-        lam = np.c_[1 - bary.sum(axis=1), bary]
-        if order == 1:
-            return lam, lam
-        return lam, np.c_[lam * (2 * lam - 1), 4 * lam[:, 0] * lam[:, 1], 4 * lam[:, 1] * lam[:, 2],
-                          4 * lam[:, 2] * lam[:, 0]]
-    t = (np.arange(m) + 0.5) / m
-    lam = np.c_[1 - t, t]
-    return lam, lam if order == 1 else np.c_[lam * (2 * lam - 1), 4 * lam[:, 0] * lam[:, 1]]
-
-
-def disc_weights(drone, r: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rotor r's thrust as the references carry it: a uniform traction over exactly the disc of
-    the patch radius about the anchor (the surface facing the thrust within that distance),
-    integrated with the faces' own shape functions: a load that converges with the mesh. The
-    simulator's patches instead share the thrust equally among the vertices of the faces whose
-    centroid falls inside, 1-7 cm off the anchor on the flower's meshes: the references'
-    compliance then moved by +-4% from one refinement to the next, and a patch's discrete edge
-    set how much it indents. Returns (nodes, weights summing to 1)."""
-    from sdexp.sim.mesh.surface import face_normals, patch_faces
-    rot, fem = drone.rotors, drone.fem
-    x, a, radius = fem.rest, rot.anchors[r], float(rot.radius)
-    faces = _faces_with_mid_nodes(fem)
-    corner_faces = faces[:, :fem.dim]
-    corners = x[corner_faces]
-    reach = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max()
-    near = patch_faces(x, corner_faces, a, rot.normals[r], radius + reach)   # every face the disc touches
-    size = np.linalg.norm(face_normals(x, corner_faces[near]), axis=1)      # area (3D), length (2D)
-    lam, shape = _face_shapes(fem.dim, fem.order)
-    pts = np.einsum("qc,kcd->kqd", lam, corners[near])                      # (k, q, dim)
-    inside = np.linalg.norm(pts - a, axis=2) <= radius
-    load = np.einsum("kq,qn->kn", inside * (size / len(lam))[:, None], shape)
-    nodes, idx = np.unique(faces[near], return_inverse=True)
-    w = np.bincount(idx.ravel(), load.ravel(), len(nodes))
-    keep = w != 0
-    return nodes[keep], w[keep] / w.sum()
-
-
-def fixed_load(drone, gravity: float, load: float, disc: bool = False) -> np.ndarray:
+def fixed_load(drone, gravity: float, load: float) -> np.ndarray:
     """Nodal forces (nv, dim) of the module's load. The thrusts come from the design (its rotor
     anchors and normals, not the mesh's patch normals) so that every mesh of a drone carries the
     same load: hover_thrust's choice between thrust patterns turns on how far the rotors tilt,
     and a patch normal a degree off on one mesh flipped the octopus's head rotor between 0 and
     1.1 N (its compliance jumped 20% between neighbouring refinements). Spread over each patch
-    as the simulator spreads it, or ``disc`` (disc_weights: the references' load)."""
+    as the simulator spreads it: a uniform traction over the patch's disc (sim.mesh.traction),
+    a load that converges with the mesh."""
     fem, rot = drone.fem, drone.rotors
     u = load_thrusts(drone, gravity, load)
     f = np.zeros_like(fem.rest)
     f[:, 1] -= fem.mass * gravity
     for r in range(rot.count):
         k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
-        nodes, w = disc_weights(drone, r) if disc else (rot.verts[k], rot.weights[k])
-        np.add.at(f, nodes, u[r] * w[:, None] * rot.normals[r])
+        np.add.at(f, rot.verts[k], u[r] * rot.weights[k][:, None] * rot.normals[r])
     return f
 
 
-def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int = MODES,
-                    disc: bool = False) -> dict:
+def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int = MODES) -> dict:
     """Under the fixed load, static and linear: ``bend``, the RMS bend (deg) of the peripheral
     IMUs as the sensor pipeline reads it, and ``compliance``, the work of the balanced load
     fb . u (J): the stiffness of the whole body (for one load a conforming mesh underestimates
-    it, too stiff; here the load too moves a little with the mesh, through the patches). The
+    it, too stiff). The
     balanced load's work does not depend on the rigid part of u, which is arbitrary (the
     unbalanced load dotted with u did: -9% to +20% of it). The bend is what the controller sees,
     but it is read from the few surface nodes inside each IMU patch; where it is below a degree
@@ -192,7 +130,7 @@ def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int 
     And ``freq``, the first ``modes`` free-free frequencies (Hz, HRZ-lumped mass as simulated;
     none for 0): a yardstick that no load or patch placement enters."""
     fem = drone.fem
-    fb = balanced(fem, fixed_load(drone, gravity, load, disc))
+    fb = balanced(fem, fixed_load(drone, gravity, load))
     u = static_displacement(fem, fb)
     out = {"compliance": float(np.sum(fb * u)), "bend": float("nan")}
     if modes:
@@ -263,7 +201,7 @@ def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravit
                        len(refine), "refinements").iterate(refine):
             cfg = replace(drone_cfg, mesh=refined(drone_cfg.mesh, r, int(drone_cfg.dim)))
             drone = build_drone(cfg, cache_dir, element)
-            res = static_response(drone, gravity, load, disc=True)
+            res = static_response(drone, gravity, load)
             rows.append([element_size(drone), drone.fem.n_elems, res["bend"], res["compliance"]])
             freqs.append(res["freq"])
         h, n, bend, compliance = np.array(rows).T
@@ -283,17 +221,13 @@ def response_errors(drone, reference: dict, gravity: float = 9.81, load: float =
     """The drone's static response and free-free frequencies beside the converged ones
     (``converged_response``), as relative errors (negative: stiffer for the bend and the
     compliance, lower for a frequency; a too stiff mesh bends less and rings higher), with the
-    reference's own uncertainty. The bend and compliance under the load as the simulator
-    spreads it over its patches (``<q>_error``: as flown) and as the references spread it
-    (``<q>_disc_error``: the elements' share of the error). The frequencies as ``freq_error`` (the first mode's),
+    reference's own uncertainty (``<q>_error``). The frequencies as ``freq_error`` (the first mode's),
     ``freq_error_max`` (the largest in size of the first MODES, signed) and ``freq_errors``."""
     res = static_response(drone, gravity, load)
-    disc = static_response(drone, gravity, load, modes=0, disc=True)
     out = {}
     for q in ("bend", "compliance"):
         ref = reference[f"{q}_converged"]
         out.update({q: res[q], f"{q}_converged": ref, f"{q}_error": res[q] / ref - 1,
-                    f"{q}_disc_error": disc[q] / ref - 1,
                     f"{q}_reference_uncertainty": reference[f"{q}_uncertainty"] / abs(ref)})
     ref = np.asarray(reference["freq_converged"])
     err = res["freq"] / ref - 1

@@ -15,6 +15,7 @@ from sdexp.sensing import SensorLayout
 from sdexp.sim.sensors import ImuPatches, build_imu_patches
 from sdexp.sim.mesh.shape import Shape
 from sdexp.sim.mesh.surface import boundary_faces, patch_faces
+from sdexp.sim.mesh.traction import disc_weights
 
 MESH_FORMAT = 2      # 2: the key holds every drone.mesh field (sdexp.cache.config_key)
 LAYERED_FORMAT = 2   # bump when shapes3d._Plate.layered_mesh changes what it makes
@@ -24,7 +25,7 @@ EXACT_OUTLINE_FORMAT = 1   # bump when shapes3d._graded_closed changes what it m
 @dataclass
 class RotorPatches:
     """CSR lists: the surface faces whose area-weighted normal is the thrust direction, and
-    the vertices the thrust is spread over (equal shares)."""
+    the nodes the thrust loads with their shares (a uniform traction over the patch's disc)."""
     face_ptr: np.ndarray
     faces: np.ndarray
     vert_ptr: np.ndarray
@@ -156,23 +157,29 @@ def _csr(lists: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return ptr, flat
 
 
-def build_rotors(points, boundary, anchors, normals, radius, name) -> RotorPatches:
-    face_lists, vert_lists = [], []
+def build_rotors(points, elems, boundary, anchors, normals, radius, name) -> RotorPatches:
+    """Each rotor's patch: the boundary faces (of ``boundary``, the simulator's linear pieces)
+    whose centroid lies within ``radius`` of its anchor, facing its normal, whose area-weighted
+    normal is the thrust's direction in flight; and the nodes of ``elems`` the thrust loads, a
+    uniform traction over the disc of ``radius`` (traction.disc_weights)."""
+    face_lists, vert_lists, weight_lists = [], [], []
     for r, (a, n) in enumerate(zip(anchors, normals)):
         idx = patch_faces(points, boundary, a, n, radius)
         if len(idx) == 0:
             raise UserError(f"drone {name}: rotor {r} finds no surface facing {n.round(2).tolist()}")
         face_lists.append(boundary[idx])
-        vert_lists.append(np.unique(boundary[idx]))
+        nodes, w = disc_weights(points, elems, np.asarray(a, float), np.asarray(n, float), radius)
+        vert_lists.append(nodes)
+        weight_lists.append(w)
     face_ptr = np.concatenate([[0], np.cumsum([len(f) for f in face_lists])]).astype(np.int64)
     faces = np.concatenate(face_lists).astype(np.int64)
     if faces.shape[1] == 2:  # keep a (k, 3) array for the numba kernel's single signature
         faces = np.c_[faces, faces[:, :1]]
     vert_ptr, verts = _csr(vert_lists)
-    weights = np.concatenate([np.full(len(v), 1.0 / len(v)) for v in vert_lists])
     normals = np.asarray(normals, dtype=float)
-    return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), weights, np.asarray(anchors),
-                        normals / np.linalg.norm(normals, axis=1, keepdims=True), float(radius))
+    return RotorPatches(face_ptr, faces, vert_ptr, verts.astype(np.int64), np.concatenate(weight_lists),
+                        np.asarray(anchors), normals / np.linalg.norm(normals, axis=1, keepdims=True),
+                        float(radius))
 
 
 def build_drone(cfg, cache_dir: str, element: str) -> Drone:
@@ -199,7 +206,7 @@ def assemble_drone(cfg, shape: Shape, points: np.ndarray, elems: np.ndarray, ele
     except ValueError as err:
         raise UserError(f"drone {cfg.name}: its mesh (drone.mesh = edge_length {cfg.mesh.edge_length}) "
                         f"gives no usable FEM model: {err}") from None
-    rotors = build_rotors(points, boundary, shape.rotors, shape.rotor_normals, cfg.rotor_radius, cfg.name)
+    rotors = build_rotors(points, elems, boundary, shape.rotors, shape.rotor_normals, cfg.rotor_radius, cfg.name)
     imus, layout = build_imu_patches(points, boundary, shape, cfg.imu_radius, cfg.name)
     return Drone(cfg.name, fem, boundary, rotors, imus, layout, float(cfg.max_thrust),
                  float(cfg.damping), float(cfg.deformation_damping))

@@ -72,24 +72,21 @@ def test_the_load_is_the_same_on_every_mesh_of_a_drone(tmp_path):
 
 def test_the_references_carry_the_same_thrust_on_the_same_body_at_every_refinement(tmp_path):
     """The yardstick's reference meshes (outline: exact) hold the same body, within what a 1 mm
-    chord takes off the petal tips, and carry each rotor's thrust as a traction over exactly
-    its disc (disc_weights): the load's centroid stays on the anchor, where the simulator's
-    equal shares per vertex put it a centimetre or more off."""
+    chord takes off the petal tips, and the simulator carries each rotor's thrust as a traction
+    over exactly its disc, on the drone's own mesh as on its references: the load's centroid
+    stays on the anchor (equal shares per vertex, before, put it 1-7 cm off on these meshes)."""
     from dataclasses import replace
 
-    from sdexp.eval.convergence import disc_weights, refined
+    from sdexp.eval.convergence import refined
     from sdexp.sim.drone import build_drone
 
     cfg = conf.drone("flower")
     drones = [build_drone(replace(cfg, mesh=refined(cfg.mesh, r, 3)), str(tmp_path), "quadratic") for r in (1.5, 2.0)]
     volumes = [d.fem.vol.sum() for d in drones]
     assert volumes[1] == pytest.approx(volumes[0], rel=2e-3)
-    worst_patch = 0.0
-    for d in drones:
+    for d in drones + [build_drone(cfg, str(tmp_path), "quadratic")]:
         rot, x = d.rotors, d.fem.rest
         for r in range(rot.count):
-            nodes, w = disc_weights(d, r)
-            assert w.sum() == pytest.approx(1.0) and np.linalg.norm(w @ x[nodes] - rot.anchors[r]) < 5e-3
             k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
-            worst_patch = max(worst_patch, np.linalg.norm(rot.weights[k] @ x[rot.verts[k]] - rot.anchors[r]))
-    assert worst_patch > 0.01
+            w = rot.weights[k]
+            assert w.sum() == pytest.approx(1.0) and np.linalg.norm(w @ x[rot.verts[k]] - rot.anchors[r]) < 5e-3

@@ -152,7 +152,7 @@ def rotor_block(dim: int, order: int):
         faces = boundary_subfaces(faces, el)
     fem = build_fem(pts, el, 1.0, 5000.0, 0.3)
     up = np.eye(dim)[1]
-    rotors = build_rotors(fem.rest, faces, [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
+    rotors = build_rotors(fem.rest, el, faces, [0.2 * up + 0.3 * np.eye(dim)[0]], [up], 0.3, "test")
     return fem, rotors
 
 
