@@ -457,8 +457,9 @@ def test_a_benchmark_that_blows_up_reports_no_speed_anywhere(tmp_path, monkeypat
       "did you mean experiment.params.beam.length?", "allowed length, poisson_ratio, sag, thickness, width, youngs_modulus"]),
     (["experiment=validate_fem", "experiment.params.bem.length=2"],
      ["experiment.params.bem.length is not a parameter of validate_fem", "did you mean experiment.params.beam?"]),
-    (["experiment=validate_fem", "experiment.params.refine.x=2"],
-     ["experiment.params.refine.x=2: experiment.params.refine is a list", "experiment.params.refine.0=", "[...]"]),
+    (["experiment=bench_sim", "experiment.params.resolution_factors.x=2"],
+     ["experiment.params.resolution_factors.x=2: experiment.params.resolution_factors is a list",
+      "experiment.params.resolution_factors.0=", "[...]"]),
     (["drone.size.x=2"], ["drone.size.x=2: drone.size is a list"]),
 ])
 def test_nested_and_list_keys_name_their_own_parent(tmp_path, args, words):

@@ -83,11 +83,10 @@ def run(run: Run) -> dict:
     names = list(p.drones or drone_names())
     elements = list(p.elements)
     gravity, load = float(cfg.sim.gravity), float(p.bend_load)
-    refine = list(p.refine)
     rows = []
     for name in Phase("bench_sim drones", len(names), "drones").iterate(names):
         d = drone_config(cfg, name)
-        ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
+        ref = converged_response(d, cfg.cache_dir, p.refine[f"{d.dim}d"], gravity, load)
         for element in elements:
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
@@ -95,7 +94,7 @@ def run(run: Run) -> dict:
     for name in Phase("bench_sim resolutions", len(names), "drones", enabled=bool(p.resolution_factors)).iterate(
             names if p.resolution_factors else []):
         d = drone_config(cfg, name)
-        ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
+        ref = converged_response(d, cfg.cache_dir, p.refine[f"{d.dim}d"], gravity, load)
         for factor in p.resolution_factors:
             coarse = with_edge(d, float(d.mesh.edge_length) * factor)
             drone = build_drone(coarse, cfg.cache_dir, "quadratic")
@@ -105,7 +104,7 @@ def run(run: Run) -> dict:
     scaling = p.scaling_drone
     if scaling:
         base = drone_config(cfg, scaling)
-        ref = converged_response(base, cfg.cache_dir, refine, gravity, load)
+        ref = converged_response(base, cfg.cache_dir, p.refine[f"{base.dim}d"], gravity, load)
         for element in elements:
             edges = list(p.scaling_edges[element])
             for edge in Phase(f"bench_sim {scaling} {element}", len(edges), "mesh sizes").iterate(edges):

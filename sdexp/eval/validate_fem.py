@@ -195,7 +195,7 @@ def run(run: Run) -> dict:
     table = pd.DataFrame(rows)
     run.table(table, "cantilever")
     refinement_plot(table, out_dir / "cantilever.png")
-    drone_rows = drone_accuracy(cfg, list(p.drones or drone_names()), list(p.refine), float(p.bend_load))
+    drone_rows = drone_accuracy(cfg, list(p.drones or drone_names()), p.refine, float(p.bend_load))
     if drone_rows:
         drones = pd.DataFrame(drone_rows)
         run.table(drones, "drones")
@@ -216,7 +216,7 @@ def run(run: Run) -> dict:
     return metrics
 
 
-def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> list[dict]:
+def drone_accuracy(cfg, names: list[str], refine: dict[str, list[float]], load: float) -> list[dict]:
     """Every named drone at its default mesh, linear and quadratic, against the converged body
     (sdexp.eval.convergence): the bend its IMUs read and its compliance under a fixed load, and
     its first free-free frequencies."""
@@ -227,7 +227,7 @@ def drone_accuracy(cfg, names: list[str], refine: list[float], load: float) -> l
     rows, gravity = [], float(cfg.sim.gravity)
     for name in names:
         d = drone_config(cfg, name)
-        ref = converged_response(d, cfg.cache_dir, refine, gravity, load)
+        ref = converged_response(d, cfg.cache_dir, refine[f"{d.dim}d"], gravity, load)
         for element in ("linear", "quadratic"):
             drone = build_drone(d, cfg.cache_dir, element)
             rows.append({"drone": name, "element": element, "elements": drone.fem.n_elems,
