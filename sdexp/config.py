@@ -548,7 +548,21 @@ def validate(cfg: DictConfig | Config) -> None:
     except OmegaConfBaseException as err:   # an interpolation that does not resolve
         key = getattr(err, "full_key", None)
         raise UserError(f"{key}: {one_line(err)}" if key else one_line(err)) from None
-    d, s, n = cfg.drone, cfg.sim, cfg.noise
+    _check_drone(cfg.drone)
+    _check_sim(cfg)
+    _check_learning(cfg.data, cfg.model)
+    _check_control(cfg)
+    _check_discrepancy(cfg.discrepancy)
+    check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
+    from sdexp.sim.physics.effects import check_config_effects, resolve_effect
+    plain = lambda x: OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x  # noqa: E731
+    check_config_effects(plain(cfg.sim.effects))   # names, parameters and ranges, before the run starts
+    for e in cfg.discrepancy.candidates:           # names and importable classes, before the logs are read
+        resolve_effect(plain(e), "discrepancy.candidates")
+
+
+def _check_drone(d) -> None:
+    """The drone: material, design, and a mesh whose size is neither absurd nor degenerate."""
     _check(d.dim in (2, 3), "drone.dim", d.dim, "2 or 3")
     _check(d.mass > 0, "drone.mass", d.mass, "> 0 kg")
     _check(d.youngs_modulus > 0, "drone.youngs_modulus", d.youngs_modulus, "> 0 Pa")
@@ -590,6 +604,11 @@ def validate(cfg: DictConfig | Config) -> None:
            "0 (fTetWild) or 1-8 layers through the thickness (3D drones only)")
     _check(d.mesh.outline in ("resampled", "exact") and (d.mesh.outline == "resampled" or d.mesh.layers),
            "drone.mesh.outline", d.mesh.outline, "resampled, or exact with drone.mesh.layers >= 1")
+
+
+def _check_sim(cfg) -> None:
+    """The simulator, the run's cores and seed, the obstacles."""
+    d, s = cfg.drone, cfg.sim
     _check(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
     _check(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
            "null or in (0, sim.control_dt]")
@@ -610,7 +629,10 @@ def validate(cfg: DictConfig | Config) -> None:
         _check(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),
                f"sim.obstacles[{i}]", OmegaConf.to_container(b) if isinstance(b, DictConfig) else b,
                f"min < max, {d.dim} coordinates each")
-    a, m = cfg.data, cfg.model
+
+
+def _check_learning(a, m) -> None:
+    """The data recipe and the learned model."""
     _check(a.samples > 0, "data.samples", a.samples, "> 0")
     _check(len(a.thrust_range) == 2 and -1 <= a.thrust_range[0] < a.thrust_range[1] <= 1, "data.thrust_range",
            list(a.thrust_range), "[lo, hi] with -1 <= lo < hi <= 1 (fractions of drone.max_thrust)")
@@ -633,7 +655,11 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
     _check(m.horizon >= 1, "model.horizon", m.horizon, ">= 1 frame")
     _check(0 <= m.command_delay <= 100, "model.command_delay", m.command_delay, "0 to 100 control steps")
-    c = cfg.control
+
+
+def _check_control(cfg) -> None:
+    """The controllers, the loss-of-control rule and the sensor noise."""
+    c, n = cfg.control, cfg.noise
     for key in ("q_s", "q_e", "q_p", "r"):
         _check(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")
     _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
@@ -661,7 +687,10 @@ def validate(cfg: DictConfig | Config) -> None:
     for key in ("angle_std_deg", "position_std", "angle_rate_std_deg", "velocity_std",
                 "rotor_std", "delay"):
         _check(getattr(n, key) >= 0, f"noise.{key}", getattr(n, key), ">= 0")
-    q = cfg.discrepancy
+
+
+def _check_discrepancy(q) -> None:
+    """The discrepancy workflow and its recorder."""
     _check(q.horizon > 0 and q.stride > 0 and q.history >= 0, "discrepancy.horizon/stride/history",
            (q.horizon, q.stride, q.history), "horizon > 0 s, stride > 0 s, history >= 0 s")
     _check(q.start_average >= 1, "discrepancy.start_average", q.start_average, ">= 1 rows")
@@ -678,9 +707,3 @@ def validate(cfg: DictConfig | Config) -> None:
     _check(r.flights >= 1 and r.seconds > 0, "discrepancy.record.flights/seconds", (r.flights, r.seconds),
            "flights >= 1, seconds > 0")
     _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
-    check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
-    from sdexp.sim.physics.effects import check_config_effects, resolve_effect
-    plain = lambda x: OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x  # noqa: E731
-    check_config_effects(plain(s.effects))   # names, parameters and ranges, before the run starts
-    for e in q.candidates:                   # names and importable classes, before the logs are read
-        resolve_effect(plain(e), "discrepancy.candidates")
