@@ -339,12 +339,8 @@ def run(run: Run) -> dict:
     data, trained, dyn = identify(cfg)
     run.table(history_table(trained), "training")
     loss_plot(trained, out_dir / "training.png", f"{cfg.drone.name}: d, g, h training")
-    metrics: dict = {"nets_cached": trained.cached, "train_wall_seconds": float(trained.wall_seconds)}
     run.table(speed_table(data, trained), "bench_model")
-    for n, h in trained.history.items():
-        metrics[f"train_seconds_{n}"] = float(trained.seconds[n])
-        metrics[f"val_l1_{n}"] = float(h["val_l1"][h["selected"]].iloc[0] if h["selected"].any() else h["val_l1"].iloc[-1])
-        metrics[f"epoch_kept_{n}"] = int(h["epoch"][h["selected"]].iloc[0]) if h["selected"].any() else int(h["epoch"].iloc[-1])
+    metrics = _training_metrics(trained)
 
     # (a) acceleration on held-out episodes
     _, val_idx = data.split(float(cfg.data.validation_fraction), int(cfg.seed))
@@ -367,22 +363,13 @@ def run(run: Run) -> dict:
     log.info(jac.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
     # (b) rollout of the linearized model against a test flight
-    seconds = float(p.rollout_seconds)
-    every = int(p.relinearize_every)
-    steps = int(round(seconds / dt))
-    found = _episode_from_data(data, val_idx, steps)
-    if found is not None:
-        X_true, U = found
-        metrics["flight_source"] = "held-out episode"
-    else:
-        X_true, U, used_seed = simulate_flight(cfg, seconds, int(cfg.seed) + int(p.test_seed_offset),
-                                               int(p.flight_attempts))
-        metrics["flight_source"] = f"simulated, seed {used_seed}"
+    X_true, U, metrics["flight_source"] = _test_flight(cfg, p, data, val_idx, dt)
     T = len(U)
     t = dt * np.arange(T + 1)
     if dyn.delay:   # the model steps on the commands acting (the flight starts with idle rotors)
         U = np.concatenate([np.zeros((min(dyn.delay, T), U.shape[1])), U[:T - dyn.delay]])
     metrics["flight_seconds"] = float(T * dt)
+    every = int(p.relinearize_every)
     X_lin, lin_times = rollout(dyn, X_true[0], U, every, linear=True)
     X_nl, _ = rollout(dyn, X_true[0], U, every, linear=False)
     restart = max(1, int(round(float(p.horizon_seconds) / dt)))
@@ -396,7 +383,41 @@ def run(run: Run) -> dict:
     rollout_plot(t, X_true, {"linearized (20 Hz)": X_lin, "nonlinear": X_nl}, errs, dyn,
                  channel_names(state_sizes(data)), out_dir / "rollout.png")
 
-    # horizon: error against time since the restart from the truth, median over the windows
+    hz = {"linearized": state_errors(dyn, X_hz, X_true), "nonlinear": state_errors(dyn, X_hz_nl, X_true),
+          "constant_velocity": state_errors(dyn, _constant_velocity(dyn, X_true, restart, dt), X_true)}
+    horizon = _horizon_table(hz, T, restart, dt)
+    run.table(horizon, "rollout_horizon")
+    metrics.update(_rollout_metrics(dyn, errs, hz, horizon, X_hz, X_hz_nl, X_true, restart, dt))
+    if lin_times:
+        metrics["jacobians_ms_mean"] = 1e3 * float(np.mean(lin_times))
+        metrics["jacobians_ms_median"] = 1e3 * float(np.median(lin_times))
+    return metrics
+
+
+def _training_metrics(trained) -> dict:
+    """Each net's training time, its kept validation L1 and epoch."""
+    metrics: dict = {"nets_cached": trained.cached, "train_wall_seconds": float(trained.wall_seconds)}
+    for n, h in trained.history.items():
+        metrics[f"train_seconds_{n}"] = float(trained.seconds[n])
+        metrics[f"val_l1_{n}"] = float(h["val_l1"][h["selected"]].iloc[0] if h["selected"].any() else h["val_l1"].iloc[-1])
+        metrics[f"epoch_kept_{n}"] = int(h["epoch"][h["selected"]].iloc[0]) if h["selected"].any() else int(h["epoch"].iloc[-1])
+    return metrics
+
+
+def _test_flight(cfg, p, data, val_idx, dt: float) -> tuple[np.ndarray, np.ndarray, str]:
+    """(X_true, U, where it came from): a held-out episode long enough, else a simulated flight."""
+    steps = int(round(float(p.rollout_seconds) / dt))
+    found = _episode_from_data(data, val_idx, steps)
+    if found is not None:
+        return *found, "held-out episode"
+    X_true, U, used_seed = simulate_flight(cfg, float(p.rollout_seconds), int(cfg.seed) + int(p.test_seed_offset),
+                                           int(p.flight_attempts))
+    return X_true, U, f"simulated, seed {used_seed}"
+
+
+def _constant_velocity(dyn, X_true: np.ndarray, restart: int, dt: float) -> np.ndarray:
+    """The baseline prediction: each window restarted from the truth, then constant rates."""
+    T = len(X_true) - 1
     const_vel = X_true.copy()
     for k0 in range(0, T, restart):
         k1 = min(k0 + restart, T)
@@ -406,8 +427,11 @@ def run(run: Run) -> dict:
         for blk, vel in VEL.items():
             seg[:, dyn.slices[blk]] = x0[dyn.slices[blk]] + tau * x0[dyn.slices[vel]]
         const_vel[k0 + 1:k1 + 1] = seg[1:]   # index k0 keeps the previous window's prediction
-    hz = {"linearized": state_errors(dyn, X_hz, X_true), "nonlinear": state_errors(dyn, X_hz_nl, X_true),
-          "constant_velocity": state_errors(dyn, const_vel, X_true)}
+    return const_vel
+
+
+def _horizon_table(hz: dict, T: int, restart: int, dt: float) -> pd.DataFrame:
+    """Error against time since the restart from the truth, median over the windows."""
     rows = []
     for j in range(1, restart + 1):
         # predictions j steps after a restart: the state at index k0 + j
@@ -419,9 +443,15 @@ def run(run: Run) -> dict:
                 w = np.where(np.isfinite(w), w, np.inf)   # a diverged window counts as the worst
                 row[f"{mode}_{blk}"] = float(np.median(w)) if len(idx) else np.nan
         rows.append(row)
-    horizon = pd.DataFrame(rows)
-    run.table(horizon, "rollout_horizon")
+    return pd.DataFrame(rows)
 
+
+def _rollout_metrics(dyn, errs: dict, hz: dict, horizon: pd.DataFrame, X_hz, X_hz_nl, X_true,
+                     restart: int, dt: float) -> dict:
+    """The rollouts' errors at 1, 10 and 60 s, where they diverge, the restarted windows' errors
+    at the horizon and share diverged, and the test flight's own spread and distance."""
+    metrics: dict = {}
+    T = len(X_true) - 1
     for mode, e in errs.items():
         for sec in (1.0, 10.0, 60.0):
             k = int(round(sec / dt))
@@ -447,7 +477,6 @@ def run(run: Run) -> dict:
         if blk in spread:
             metrics[f"flight_spread_{blk}"] = float(np.sqrt(np.mean(spread[blk] ** 2)))
     metrics["flight_distance_m"] = float(np.linalg.norm(X_true[-1, dyn.slices["p"]] - X_true[0, dyn.slices["p"]]))
-    if lin_times:
-        metrics["jacobians_ms_mean"] = 1e3 * float(np.mean(lin_times))
-        metrics["jacobians_ms_median"] = 1e3 * float(np.median(lin_times))
     return metrics
+
+
