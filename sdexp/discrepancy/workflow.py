@@ -20,7 +20,7 @@ import json
 import logging
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, replace
 from math import comb
 from pathlib import Path
 
@@ -172,27 +172,61 @@ class Laps:
         self._t, self._r = t, r
 
 
+@dataclass
+class _Naming:
+    """What localizing and naming work on: the nominal simulator's predictor, the flights'
+    windows (training, thinned for the fits, held out) and the noise floor they are judged by."""
+    drone: object
+    sim_cfg: object
+    noise_cfg: object
+    dcfg: object
+    seed: int
+    log: object
+    laps: Laps
+    pred: Predictor
+    cands: list
+    train_all: Windows
+    train: Windows
+    held: Windows
+    sigma: np.ndarray
+    r_floor: np.ndarray
+    w_floor: Windows
+    rng: np.random.Generator
+
+    def table_on(self, r, w) -> pd.DataFrame:
+        return localize(r, w, self.r_floor, self.w_floor, self.sigma, self.drone.dim, self.drone.layout.n_s)
+
+    def left_over(self, r_tr, w_tr, r_he, w_he):
+        """Channels above the floor on held-out flights, replicated on training flights."""
+        def ex(r, w):
+            return channel_excess(r, w.flight_of, self.r_floor, self.w_floor.flight_of, self.sigma, w.channels)
+        return unexplained_channels(ex(r_he, w_he), ex(r_tr, w_tr), self.dcfg.unexplained_ratio, self.dcfg.alpha)
+
+
+@dataclass
+class _Named:
+    """The effects named one after another, and the residuals with them in."""
+    accepted: list
+    base: list
+    rounds: list
+    verdict: str
+    ties: list
+    confusable: list
+    cur_train: np.ndarray
+    cur_held: np.ndarray
+    cur_held_w: np.ndarray
+
+
 def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: Path, cache_dir: str,
                  seed: int = 0, plots: bool = True, log=print) -> dict:
     t0 = time.perf_counter()
     laps = Laps(log)
     out_dir = Path(out_dir)
-    logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim,
-                     max_thrust=drone.max_thrust)
     dt = float(sim_cfg.control_dt)
-    if abs(logs.dt - dt) > 1e-9:
-        raise UserError(f"{logs.folder / 'meta.json'}: sample_rate = {logs.meta['sample_rate']} Hz but the "
-                        f"simulator runs at 1/sim.control_dt = {1 / dt:g} Hz")
-    if len(logs.flights) < 2:
-        raise UserError(f"{logs.folder}: {len(logs.flights)} flight(s); at least 2 are needed to hold one out")
+    logs = _read(drone, measured, dt)
     cands = library_candidates(drone, list(dcfg.candidates) or None)
     h, stride, hist = steps_of(dcfg, dt, history_seconds(cands, dcfg.history))
-    w_all = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
-    too_short = [f.name for f, s in zip(logs.flights, w_all.starts) if len(s) == 0]
-    if too_short:
-        lead = max(hist, int(dcfg.start_average) - 1)
-        raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history (or "
-                        f"start_average rows) + horizon ({(lead + h + 1) * dt:g} s)")
+    w_all = _windows(logs, dcfg, h, stride, hist, dt)
     bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
     laps.lap(f"logs read, bend map and noise floor ({floor_flight_count(drone, dcfg)} nominal flights; cached)")
     sigma = noise_floor(r_floor)
@@ -206,44 +240,135 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     # of a candidate costs in proportion to it
     train = thin(train_all, int(dcfg.fit_windows))
     pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend)
-    rng = np.random.default_rng(seed)
+    ctx = _Naming(drone, sim_cfg, noise_cfg, dcfg, seed, log, laps, pred, cands, train_all, train, held,
+                  sigma, r_floor, w_floor, np.random.default_rng(seed))
 
     # 1. localize
     r_train_all, r_held = pred.residual(train_all, []), pred.residual(held, [])
     r_train = pred.residual(train, []) if train is not train_all else r_train_all
-    r_all = np.concatenate([r_train_all, r_held])
-    w_order = subset(w_all, train_ids + held_ids)
-    table = localize(r_all, w_order, r_floor, w_floor, sigma, drone.dim, drone.layout.n_s)
+    table = ctx.table_on(np.concatenate([r_train_all, r_held]), subset(w_all, train_ids + held_ids))
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(out_dir / "localize.csv", lambda tmp: table.to_csv(tmp, index=False))
     if plots:
         heatmap(table, out_dir / "localize.png", f"{drone.name}: nominal simulator vs logs")
-    def table_on(r, w):
-        return localize(r, w, r_floor, w_floor, sigma, drone.dim, drone.layout.n_s)
-
-    def left_over(r_tr, w_tr, r_he, w_he):
-        """Channels above the floor on held-out flights, replicated on training flights."""
-        ex = lambda r, w: channel_excess(r, w.flight_of, r_floor, w_floor.flight_of, sigma, w.channels)  # noqa: E731
-        return unexplained_channels(ex(r_he, w_he), ex(r_tr, w_tr), dcfg.unexplained_ratio, dcfg.alpha)
-
     n_floor = len(np.unique(w_floor.flight_of))
     need = floor_needed(len(held_ids), len(logs.channels), float(dcfg.alpha))
     if n_floor < need:
         log(f"discrepancy: {len(held_ids)} held-out and {n_floor} floor flights are too few for the unexplained "
             f"test to reach alpha / channels = {dcfg.alpha / len(logs.channels):.4f}: a gap no candidate closes "
             f"will be answered none (give discrepancy.floor_flights >= {need}, or null to size it by itself)")
-    hot = unexplained_cell(table, left_over(r_train_all, train_all, r_held, held), dcfg.unexplained_ratio,
+    hot = unexplained_cell(table, ctx.left_over(r_train_all, train_all, r_held, held), dcfg.unexplained_ratio,
                            dcfg.alpha)
     laps.lap("localize")
 
     # 2. name, one effect at a time
-    base, accepted, rounds = [], [], []
     held_nom_w = window_loss(r_held, sigma)
+    named = _name(ctx, r_train, r_held, held_nom_w, floor_w)
+    not_significant = []
+    if shortfall is not None and named.accepted:
+        # too few flights for the test that named them: shown, not named, and not added
+        not_significant = [{"name": f.name, "params": f.params, "held_loss": f.held_loss} for f in named.accepted]
+        log(f"discrepancy: not significant with these flights: {', '.join(f.name for f in named.accepted)}")
+        named = replace(named, accepted=[], base=[], ties=[], cur_held=r_held, cur_held_w=held_nom_w,
+                        cur_train=r_train)
+    accepted, base, verdict = named.accepted, named.base, named.verdict
+    # the gap: excess of the held-out loss over the noise floor's, as trimmed means (the top
+    # 10% of windows dropped): a few windows of the floor flights with large errors would
+    # otherwise move the floor by more than a moderate effect's whole gap
+    L_before, L_after, floor_L = trimmed(held_nom_w), trimmed(named.cur_held_w), trimmed(floor_w)
+    remaining_cell = None
+    if accepted:
+        remaining_cell = unexplained_cell(ctx.table_on(named.cur_held, held),
+                                          ctx.left_over(named.cur_train, train, named.cur_held, held),
+                                          dcfg.unexplained_ratio, dcfg.alpha)
+    if not accepted:
+        verdict = "unexplained" if hot is not None else "none"
+    explained = (float(min(1.0, 1 - (L_after - floor_L) / (L_before - floor_L)))
+                 if accepted and L_before > floor_L else None)
+    if remaining_cell is not None and explained is not None and explained < dcfg.explained_enough:
+        # named effects that leave a significant part of the gap: an equivalent in part, and
+        # the rest unexplained (remaining_above_floor says where)
+        verdict = "partly"
+    push_summary, gust_stats = _gusts_and_push(ctx, w_all, base, accepted, held_ids, floor_w, out_dir, plots)
+    laps.lap("gusts and push")
+
+    # 3. add
+    out_yaml = _write_fitted(sim_cfg, accepted, dcfg, out_dir)
+
+    # 4. show
+    candidate_of = {c.name: c for c in cands}
+    effects = [{"name": f.name, "params": f.params, "params_interval": params_interval(f, candidate_of[f.name]),
+                "interval_level": LEVEL, "theta": f.theta.tolist(), "theta_names": candidate_of[f.name].params,
+                "theta_std": f.theta_std.tolist()} for f in accepted]
+    for e in effects:
+        log(f"discrepancy: {describe(e)}")
+    gap = gap_table(r_held, named.cur_held, sigma, r_floor, logs.channels)
+    atomic_write(out_dir / "gap.csv", lambda tmp: gap.to_csv(tmp, index=False))
+    if plots:
+        overlay(held, r_held, named.cur_held, gap, out_dir / "overlay.png", dt,
+                "fitted: " + "; ".join(describe(e) for e in effects) if effects else "no effect named")
+    gap_before, gap_after = L_before - floor_L, L_after - floor_L
+    laps.lap("the fitted simulator, the gap and the plots")
+    report = {
+        "drone": drone.name, "measured": str(logs.folder), "flights": len(logs.flights),
+        "train_flights": [logs.flights[i].name for i in train_ids],
+        "held_out_flights": [logs.flights[i].name for i in held_ids],
+        "windows": {"train": train_all.count, "fit": train.count, "held_out": held.count, "horizon_s": h * dt},
+        "verdict": verdict,
+        "effects": effects,
+        "ties": named.ties,
+        "confusable": named.confusable,
+        "not_significant": _jsonable(not_significant), "too_few_flights": shortfall,
+        "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
+        "remaining_above_floor": _jsonable(remaining_cell),
+        "push": _jsonable(push_summary),
+        "gusts": _jsonable(gust_stats),
+        # the share of the held-out gap over the floor that the named effects close
+        "explained_share": explained,
+        "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
+                "gap_before": gap_before, "gap_after": gap_after,
+                "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},
+        "rounds": named.rounds, "rollouts": pred.rollouts, "seconds": time.perf_counter() - t0,
+        "phases": laps.phases, "sim_fitted": str(out_yaml),
+    }
+    atomic_write(out_dir / "report.json", lambda tmp: tmp.write_text(json.dumps(_jsonable(report), indent=2)))
+    return report
+
+
+def _read(drone, measured, dt: float):
+    """The measured logs, checked against the drone and the simulator's control rate."""
+    logs = read_logs(measured, drone.name, drone.num_rotors, drone.layout.n_s, drone.dim,
+                     max_thrust=drone.max_thrust)
+    if abs(logs.dt - dt) > 1e-9:
+        raise UserError(f"{logs.folder / 'meta.json'}: sample_rate = {logs.meta['sample_rate']} Hz but the "
+                        f"simulator runs at 1/sim.control_dt = {1 / dt:g} Hz")
+    if len(logs.flights) < 2:
+        raise UserError(f"{logs.folder}: {len(logs.flights)} flight(s); at least 2 are needed to hold one out")
+    return logs
+
+
+def _windows(logs, dcfg, h: int, stride: int, hist: int, dt: float) -> Windows:
+    """Every flight's windows; a flight too short for one is an error that names it."""
+    w_all = make_windows(logs.flights, logs.channels, h, stride, hist, int(dcfg.start_average))
+    too_short = [f.name for f, s in zip(logs.flights, w_all.starts) if len(s) == 0]
+    if too_short:
+        lead = max(hist, int(dcfg.start_average) - 1)
+        raise UserError(f"{logs.folder}: flight(s) {too_short} shorter than discrepancy.history (or "
+                        f"start_average rows) + horizon ({(lead + h + 1) * dt:g} s)")
+    return w_all
+
+
+def _name(ctx: _Naming, r_train, r_held, held_nom_w, floor_w) -> _Named:
+    """Up to ``max_effects`` rounds: fit every remaining candidate, refine the screened ones, test
+    them on the held-out flights, add the best; stop when none passes or when what is left is
+    near the floor."""
+    dcfg, pred, train, held, sigma, log, laps = ctx.dcfg, ctx.pred, ctx.train, ctx.held, ctx.sigma, ctx.log, ctx.laps
+    base, accepted, rounds = [], [], []
     cur_train, cur_held, cur_held_w = r_train, r_held, held_nom_w
     verdict, ties, confusable = "none", [], []
     for rnd in range(int(dcfg.max_effects)):
-        remaining = [c for c in cands if c.name not in {f.name for f in accepted}]
-        fits = [linear_fit(c, pred, train, sigma, cur_train, base, rng) for c in remaining]
+        remaining = [c for c in ctx.cands if c.name not in {f.name for f in accepted}]
+        fits = [linear_fit(c, pred, train, sigma, cur_train, base, ctx.rng) for c in remaining]
         laps.lap(f"round {rnd + 1}: linear fits of {len(remaining)} candidates")
         L_train = float(np.mean((cur_train / sigma) ** 2))
         # screening by the linear model's training loss; a candidate whose rollout does not
@@ -259,23 +384,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             refine(fits[i], remaining[i], pred, train, held, sigma, base)
             tried += 1
             good += fits[i].train_loss < L_train
-
-        def drift(f):
-            """A wind may drift: scored on held-out windows also with the deviation the window
-            before asked for (gusts.causal_residual), the better of the two kept as evidence."""
-            if f.name != "wind" or not f.refined:
-                return
-            eff = base + f.effects
-            r_c, rho = gusts.causal_residual(pred, train_all, held, sigma, eff, f.effects[0],
-                                             pred.residual(train_all, eff), f.evidence["held_residual"],
-                                             WIND_PLANES[drone.dim][f.option])
-            f.evidence["drift_rho"] = rho
-            if r_c is not None and np.mean(window_loss(r_c, sigma)) < f.held_loss:
-                f.evidence["steady_held_w"] = f.held_w
-                f.held_w = window_loss(r_c, sigma)
-                f.held_loss = float(np.mean(f.held_w))
         for f in fits:
-            drift(f)
+            _drift(ctx, f, base)
         v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
         cand_of = {c.name: c for c in remaining}
         passed = {r["candidate"] for r in ranking if r.get("passes")}
@@ -286,7 +396,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             for f in passing:
                 polish(f, cand_of[f.name], pred, train, held, sigma, base, iters=1)
                 if "steady_held_w" not in f.evidence:
-                    drift(f)   # polish moved it and scored it steady
+                    _drift(ctx, f, base)   # polish moved it and scored it steady
             v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
         laps.lap(f"round {rnd + 1}: the screened candidates refined and tested")
         rounds.append({"round": rnd + 1, "verdict": v, "ranking": _jsonable(ranking), "z_threshold": float(z),
@@ -301,7 +411,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         accepted.append(best)
         if rnd == 0:
             verdict, ties = v, [t.name for t in tie]
-            confusable = _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcfg, seed, log)
+            confusable = _confusable(best, tie, cur_held, sigma, base, ctx.drone, ctx.sim_cfg, ctx.noise_cfg,
+                                     dcfg, ctx.seed, log)
             if any(c["alike"] for c in confusable):
                 laps.lap("round 1: what would separate the tied candidates")
         base = base + best.effects
@@ -315,45 +426,43 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         # floor, what is left is the named effect's imperfect fit (a payload lumped on other
         # vertices), which a second effect would only mimic
         if (trimmed(cur_held_w) < dcfg.second_effect_ratio * trimmed(floor_w)
-                or not left_over(cur_train, train, cur_held, held)):
+                or not ctx.left_over(cur_train, train, cur_held, held)):
             break
-    not_significant = []
-    if shortfall is not None and accepted:
-        # too few flights for the test that named them: shown, not named, and not added
-        not_significant = [{"name": f.name, "params": f.params, "held_loss": f.held_loss} for f in accepted]
-        log(f"discrepancy: not significant with these flights: {', '.join(f.name for f in accepted)}")
-        accepted, base, ties = [], [], []
-        cur_held, cur_held_w, cur_train = r_held, held_nom_w, r_train
-    # the gap: excess of the held-out loss over the noise floor's, as trimmed means (the top
-    # 10% of windows dropped): a few windows of the floor flights with large errors would
-    # otherwise move the floor by more than a moderate effect's whole gap
-    L_before, L_after, floor_L = trimmed(held_nom_w), trimmed(cur_held_w), trimmed(floor_w)
-    remaining_cell = None
-    if accepted:
-        remaining_cell = unexplained_cell(table_on(cur_held, held), left_over(cur_train, train, cur_held, held),
-                                          dcfg.unexplained_ratio, dcfg.alpha)
-    if not accepted:
-        verdict = "unexplained" if hot is not None else "none"
-    explained = (float(min(1.0, 1 - (L_after - floor_L) / (L_before - floor_L)))
-                 if accepted and L_before > floor_L else None)
-    if remaining_cell is not None and explained is not None and explained < dcfg.explained_enough:
-        # named effects that leave a significant part of the gap: an equivalent in part, and
-        # the rest unexplained (remaining_above_floor says where)
-        verdict = "partly"
+    return _Named(accepted, base, rounds, verdict, ties, confusable, cur_train, cur_held, cur_held_w)
 
-    # where a push still acts, window by window, with the named effects in (a diagnostic)
+
+def _drift(ctx: _Naming, f, base: list) -> None:
+    """A wind may drift: scored on held-out windows also with the deviation the window before
+    asked for (gusts.causal_residual), the better of the two kept as evidence."""
+    if f.name != "wind" or not f.refined:
+        return
+    pred, sigma = ctx.pred, ctx.sigma
+    eff = base + f.effects
+    r_c, rho = gusts.causal_residual(pred, ctx.train_all, ctx.held, sigma, eff, f.effects[0],
+                                     pred.residual(ctx.train_all, eff), f.evidence["held_residual"],
+                                     WIND_PLANES[ctx.drone.dim][f.option])
+    f.evidence["drift_rho"] = rho
+    if r_c is not None and np.mean(window_loss(r_c, sigma)) < f.held_loss:
+        f.evidence["steady_held_w"] = f.held_w
+        f.held_w = window_loss(r_c, sigma)
+        f.held_loss = float(np.mean(f.held_w))
+
+
+def _gusts_and_push(ctx: _Naming, w_all, base, accepted, held_ids, floor_w, out_dir: Path, plots: bool):
+    """Where a push still acts, window by window, with the named effects in (a diagnostic); a
+    named wind whose windows ask for a slowly varying one gets its gusts. (push summary, gusts)."""
+    dcfg, pred, sigma, drone = ctx.dcfg, ctx.pred, ctx.sigma, ctx.drone
     push_summary, gust_stats = None, None
     wind = next((f for f in accepted if f.name == "wind"), None)
     r_left = pred.residual(w_all, base) if dcfg.push or wind is not None else None
     if wind is not None:
-        # a named wind: do the windows ask for a slowly varying one? then the fit gets its gusts
         entry = wind.effects[0]
         dev, var = gusts.deviations(pred, w_all, sigma, base, entry, r_left, WIND_PLANES[drone.dim][wind.option])
         gust_stats = gusts.statistics(dev, var, w_all.flight_of, held_ids, dcfg.stride, dcfg.alpha)
         if gust_stats["gusty"] and gust_stats["gust_time"]:
             entry.update(gust_std=gust_stats["gust_std"], gust_time=gust_stats["gust_time"])
             wind.params.update(gust_std=gust_stats["gust_std"], gust_time=gust_stats["gust_time"])
-        log(f"discrepancy: wind gusts {gust_stats}")
+        ctx.log(f"discrepancy: wind gusts {gust_stats}")
     if dcfg.push:
         pushes = push.estimate(pred, w_all, sigma, base, r_left)
         atomic_write(out_dir / "push.csv", lambda tmp: pushes.to_csv(tmp, index=False))
@@ -362,57 +471,19 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
             push.plot(pushes, out_dir / "push.png", drone.dim,
                       f"{drone.name}: the push per window that the simulator"
                       f"{' with ' + ', '.join(f.name for f in accepted) if accepted else ''} misses")
+    return push_summary, gust_stats
 
-    laps.lap("gusts and push")
 
-    # 3. add
-    fitted_effects = [e for f in accepted for e in f.effects]
+def _write_fitted(sim_cfg, accepted, dcfg, out_dir: Path) -> Path:
+    """sim_fitted.yaml (or discrepancy.out): the simulator config with the fitted effects."""
     sim_fitted = asdict(sim_cfg)
-    sim_fitted["effects"] = _jsonable(fitted_effects)
+    sim_fitted["effects"] = _jsonable([e for f in accepted for e in f.effects])
     out_yaml = Path(dcfg.out) if dcfg.out else out_dir / "sim_fitted.yaml"
     atomic_write(out_yaml, lambda tmp: tmp.write_text(
         "# The simulator config with the effects the discrepancy workflow fitted; copy to\n"
         "# conf/sim/<name>.yaml and run with sim=<name>.\n"
         + yaml.safe_dump(sim_fitted, default_flow_style=False, sort_keys=False, allow_unicode=True)))
-
-    # 4. show
-    candidate_of = {c.name: c for c in cands}
-    effects = [{"name": f.name, "params": f.params, "params_interval": params_interval(f, candidate_of[f.name]),
-                "interval_level": LEVEL, "theta": f.theta.tolist(), "theta_names": candidate_of[f.name].params,
-                "theta_std": f.theta_std.tolist()} for f in accepted]
-    for e in effects:
-        log(f"discrepancy: {describe(e)}")
-    gap = gap_table(r_held, cur_held, sigma, r_floor, logs.channels)
-    atomic_write(out_dir / "gap.csv", lambda tmp: gap.to_csv(tmp, index=False))
-    if plots:
-        overlay(held, r_held, cur_held, gap, out_dir / "overlay.png", dt,
-                "fitted: " + "; ".join(describe(e) for e in effects) if effects else "no effect named")
-    gap_before, gap_after = L_before - floor_L, L_after - floor_L
-    laps.lap("the fitted simulator, the gap and the plots")
-    report = {
-        "drone": drone.name, "measured": str(logs.folder), "flights": len(logs.flights),
-        "train_flights": [logs.flights[i].name for i in train_ids],
-        "held_out_flights": [logs.flights[i].name for i in held_ids],
-        "windows": {"train": train_all.count, "fit": train.count, "held_out": held.count, "horizon_s": h * dt},
-        "verdict": verdict,
-        "effects": effects,
-        "ties": ties,
-        "confusable": confusable,
-        "not_significant": _jsonable(not_significant), "too_few_flights": shortfall,
-        "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
-        "remaining_above_floor": _jsonable(remaining_cell),
-        "push": _jsonable(push_summary),
-        "gusts": _jsonable(gust_stats),
-        # the share of the held-out gap over the floor that the named effects close
-        "explained_share": explained,
-        "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
-                "gap_before": gap_before, "gap_after": gap_after,
-                "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},
-        "rounds": rounds, "rollouts": pred.rollouts, "seconds": time.perf_counter() - t0, "phases": laps.phases,
-        "sim_fitted": str(out_yaml),
-    }
-    atomic_write(out_dir / "report.json", lambda tmp: tmp.write_text(json.dumps(_jsonable(report), indent=2)))
-    return report
+    return out_yaml
 
 
 def _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcfg, seed: int, log) -> list[dict]:
