@@ -220,45 +220,18 @@ class _Named:
 def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: Path, cache_dir: str,
                  seed: int = 0, plots: bool = True, log=print) -> dict:
     t0 = time.perf_counter()
-    laps = Laps(log)
     out_dir = Path(out_dir)
     dt = float(sim_cfg.control_dt)
-    logs = _read(drone, measured, dt)
-    cands = library_candidates(drone, list(dcfg.candidates) or None)
-    h, stride, hist = steps_of(dcfg, dt, history_seconds(cands, dcfg.history))
-    w_all = _windows(logs, dcfg, h, stride, hist, dt)
-    bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
-    laps.lap(f"logs read, bend map and noise floor ({floor_flight_count(drone, dcfg)} nominal flights; cached)")
-    sigma = noise_floor(r_floor)
-    floor_w = window_loss(r_floor, sigma)
-    train_ids, held_ids = split_flights(len(logs.flights), dcfg.holdout)
-    shortfall = naming_shortfall(len(logs.flights), float(dcfg.holdout), floor_flight_count(drone, dcfg))
-    if shortfall is not None:
-        log(f"discrepancy: {shortfall}")
-    train_all, held = subset(w_all, train_ids), subset(w_all, held_ids)
-    # the fits estimate a few parameters each: a thinned training set does, and every rollout
-    # of a candidate costs in proportion to it
-    train = thin(train_all, int(dcfg.fit_windows))
-    pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend)
-    ctx = _Naming(drone, sim_cfg, noise_cfg, dcfg, seed, log, laps, pred, cands, train_all, train, held,
-                  sigma, r_floor, w_floor, np.random.default_rng(seed))
+    ctx, logs, w_all, (train_ids, held_ids), h, shortfall = _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg,
+                                                                   measured, cache_dir, seed, log)
+    pred, laps, sigma, train_all, train, held = ctx.pred, ctx.laps, ctx.sigma, ctx.train_all, ctx.train, ctx.held
+    floor_w = window_loss(ctx.r_floor, sigma)
 
     # 1. localize
     r_train_all, r_held = pred.residual(train_all, []), pred.residual(held, [])
     r_train = pred.residual(train, []) if train is not train_all else r_train_all
-    table = ctx.table_on(np.concatenate([r_train_all, r_held]), subset(w_all, train_ids + held_ids))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write(out_dir / "localize.csv", lambda tmp: table.to_csv(tmp, index=False))
-    if plots:
-        heatmap(table, out_dir / "localize.png", f"{drone.name}: nominal simulator vs logs")
-    n_floor = len(np.unique(w_floor.flight_of))
-    need = floor_needed(len(held_ids), len(logs.channels), float(dcfg.alpha))
-    if n_floor < need:
-        log(f"discrepancy: {len(held_ids)} held-out and {n_floor} floor flights are too few for the unexplained "
-            f"test to reach alpha / channels = {dcfg.alpha / len(logs.channels):.4f}: a gap no candidate closes "
-            f"will be answered none (give discrepancy.floor_flights >= {need}, or null to size it by itself)")
-    hot = unexplained_cell(table, ctx.left_over(r_train_all, train_all, r_held, held), dcfg.unexplained_ratio,
-                           dcfg.alpha)
+    hot = _localize(ctx, np.concatenate([r_train_all, r_held]), subset(w_all, train_ids + held_ids),
+                    r_train_all, r_held, len(held_ids), len(logs.channels), out_dir, plots)
     laps.lap("localize")
 
     # 2. name, one effect at a time
@@ -271,43 +244,16 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         log(f"discrepancy: not significant with these flights: {', '.join(f.name for f in named.accepted)}")
         named = replace(named, accepted=[], base=[], ties=[], cur_held=r_held, cur_held_w=held_nom_w,
                         cur_train=r_train)
-    accepted, base, verdict = named.accepted, named.base, named.verdict
-    # the gap: excess of the held-out loss over the noise floor's, as trimmed means (the top
-    # 10% of windows dropped): a few windows of the floor flights with large errors would
-    # otherwise move the floor by more than a moderate effect's whole gap
-    L_before, L_after, floor_L = trimmed(held_nom_w), trimmed(named.cur_held_w), trimmed(floor_w)
-    remaining_cell = None
-    if accepted:
-        remaining_cell = unexplained_cell(ctx.table_on(named.cur_held, held),
-                                          ctx.left_over(named.cur_train, train, named.cur_held, held),
-                                          dcfg.unexplained_ratio, dcfg.alpha)
-    if not accepted:
-        verdict = "unexplained" if hot is not None else "none"
-    explained = (float(min(1.0, 1 - (L_after - floor_L) / (L_before - floor_L)))
-                 if accepted and L_before > floor_L else None)
-    if remaining_cell is not None and explained is not None and explained < dcfg.explained_enough:
-        # named effects that leave a significant part of the gap: an equivalent in part, and
-        # the rest unexplained (remaining_above_floor says where)
-        verdict = "partly"
-    push_summary, gust_stats = _gusts_and_push(ctx, w_all, base, accepted, held_ids, floor_w, out_dir, plots)
+    verdict, explained, remaining_cell, (L_before, L_after, floor_L) = _verdict(ctx, named, hot, held_nom_w, floor_w)
+    push_summary, gust_stats = _gusts_and_push(ctx, w_all, named.base, named.accepted, held_ids, floor_w, out_dir,
+                                               plots)
     laps.lap("gusts and push")
 
     # 3. add
-    out_yaml = _write_fitted(sim_cfg, accepted, dcfg, out_dir)
+    out_yaml = _write_fitted(sim_cfg, named.accepted, dcfg, out_dir)
 
     # 4. show
-    candidate_of = {c.name: c for c in cands}
-    effects = [{"name": f.name, "params": f.params, "params_interval": params_interval(f, candidate_of[f.name]),
-                "interval_level": LEVEL, "theta": f.theta.tolist(), "theta_names": candidate_of[f.name].params,
-                "theta_std": f.theta_std.tolist()} for f in accepted]
-    for e in effects:
-        log(f"discrepancy: {describe(e)}")
-    gap = gap_table(r_held, named.cur_held, sigma, r_floor, logs.channels)
-    atomic_write(out_dir / "gap.csv", lambda tmp: gap.to_csv(tmp, index=False))
-    if plots:
-        overlay(held, r_held, named.cur_held, gap, out_dir / "overlay.png", dt,
-                "fitted: " + "; ".join(describe(e) for e in effects) if effects else "no effect named")
-    gap_before, gap_after = L_before - floor_L, L_after - floor_L
+    effects = _show(ctx, named, r_held, logs, dt, out_dir, plots)
     laps.lap("the fitted simulator, the gap and the plots")
     report = {
         "drone": drone.name, "measured": str(logs.folder), "flights": len(logs.flights),
@@ -325,14 +271,106 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "gusts": _jsonable(gust_stats),
         # the share of the held-out gap over the floor that the named effects close
         "explained_share": explained,
-        "gap": {"held_loss_before": L_before, "held_loss_after": L_after, "floor_loss": floor_L,
-                "gap_before": gap_before, "gap_after": gap_after,
-                "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None},
+        "gap": _gap(L_before, L_after, floor_L),
         "rounds": named.rounds, "rollouts": pred.rollouts, "seconds": time.perf_counter() - t0,
         "phases": laps.phases, "sim_fitted": str(out_yaml),
     }
     atomic_write(out_dir / "report.json", lambda tmp: tmp.write_text(json.dumps(_jsonable(report), indent=2)))
     return report
+
+
+def _gap(before: float, after: float, floor: float) -> dict:
+    """The held-out loss before and after, the floor's, and the share of the gap closed."""
+    gap_before, gap_after = before - floor, after - floor
+    return {"held_loss_before": before, "held_loss_after": after, "floor_loss": floor,
+            "gap_before": gap_before, "gap_after": gap_after,
+            "reduction": float(min(1.0, 1 - gap_after / gap_before)) if gap_before > 0 else None}
+
+
+def _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, cache_dir: str, seed: int, log):
+    """The logs read and windowed, the bend map and the noise floor, the flights split:
+    (_Naming, logs, every window, (training ids, held-out ids), horizon steps, shortfall)."""
+    laps = Laps(log)
+    dt = float(sim_cfg.control_dt)
+    logs = _read(drone, measured, dt)
+    cands = library_candidates(drone, list(dcfg.candidates) or None)
+    h, stride, hist = steps_of(dcfg, dt, history_seconds(cands, dcfg.history))
+    w_all = _windows(logs, dcfg, h, stride, hist, dt)
+    bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
+    laps.lap(f"logs read, bend map and noise floor ({floor_flight_count(drone, dcfg)} nominal flights; cached)")
+    sigma = noise_floor(r_floor)
+    train_ids, held_ids = split_flights(len(logs.flights), dcfg.holdout)
+    shortfall = naming_shortfall(len(logs.flights), float(dcfg.holdout), floor_flight_count(drone, dcfg))
+    if shortfall is not None:
+        log(f"discrepancy: {shortfall}")
+    train_all, held = subset(w_all, train_ids), subset(w_all, held_ids)
+    # the fits estimate a few parameters each: a thinned training set does, and every rollout
+    # of a candidate costs in proportion to it
+    train = thin(train_all, int(dcfg.fit_windows))
+    pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend)
+    ctx = _Naming(drone, sim_cfg, noise_cfg, dcfg, seed, log, laps, pred, cands, train_all, train, held,
+                  sigma, r_floor, w_floor, np.random.default_rng(seed))
+    return ctx, logs, w_all, (train_ids, held_ids), h, shortfall
+
+
+def _show(ctx: _Naming, named: _Named, r_held, logs, dt: float, out_dir: Path, plots: bool) -> list[dict]:
+    """The named effects with their intervals (logged), the held-out gap per channel before and
+    after (gap.csv) and the overlays (overlay.png)."""
+    candidate_of = {c.name: c for c in ctx.cands}
+    effects = [{"name": f.name, "params": f.params, "params_interval": params_interval(f, candidate_of[f.name]),
+                "interval_level": LEVEL, "theta": f.theta.tolist(), "theta_names": candidate_of[f.name].params,
+                "theta_std": f.theta_std.tolist()} for f in named.accepted]
+    for e in effects:
+        ctx.log(f"discrepancy: {describe(e)}")
+    gap = gap_table(r_held, named.cur_held, ctx.sigma, ctx.r_floor, logs.channels)
+    atomic_write(out_dir / "gap.csv", lambda tmp: gap.to_csv(tmp, index=False))
+    if plots:
+        overlay(ctx.held, r_held, named.cur_held, gap, out_dir / "overlay.png", dt,
+                "fitted: " + "; ".join(describe(e) for e in effects) if effects else "no effect named")
+    return effects
+
+
+def _localize(ctx: _Naming, r_all, w_order, r_train_all, r_held, n_held: int, n_channels: int,
+              out_dir: Path, plots: bool):
+    """Residuals per channel and regime against the floor (localize.csv, .png); the channel and
+    regime left above the floor on held-out flights and replicated on training ones, or None."""
+    dcfg, drone = ctx.dcfg, ctx.drone
+    table = ctx.table_on(r_all, w_order)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write(out_dir / "localize.csv", lambda tmp: table.to_csv(tmp, index=False))
+    if plots:
+        heatmap(table, out_dir / "localize.png", f"{drone.name}: nominal simulator vs logs")
+    n_floor = len(np.unique(ctx.w_floor.flight_of))
+    need = floor_needed(n_held, n_channels, float(dcfg.alpha))
+    if n_floor < need:
+        ctx.log(f"discrepancy: {n_held} held-out and {n_floor} floor flights are too few for the unexplained "
+                f"test to reach alpha / channels = {dcfg.alpha / n_channels:.4f}: a gap no candidate closes "
+                f"will be answered none (give discrepancy.floor_flights >= {need}, or null to size it by itself)")
+    return unexplained_cell(table, ctx.left_over(r_train_all, ctx.train_all, r_held, ctx.held),
+                            dcfg.unexplained_ratio, dcfg.alpha)
+
+
+def _verdict(ctx: _Naming, named: _Named, hot, held_nom_w, floor_w):
+    """(verdict, explained share, the cell left above the floor, (held loss before, after, floor)).
+    The gap is the excess of the held-out loss over the noise floor's, as trimmed means (the
+    top 10% of windows dropped): a few windows of the floor flights with large errors would
+    otherwise move the floor by more than a moderate effect's whole gap."""
+    dcfg, verdict = ctx.dcfg, named.verdict
+    L_before, L_after, floor_L = trimmed(held_nom_w), trimmed(named.cur_held_w), trimmed(floor_w)
+    remaining_cell = None
+    if named.accepted:
+        remaining_cell = unexplained_cell(ctx.table_on(named.cur_held, ctx.held),
+                                          ctx.left_over(named.cur_train, ctx.train, named.cur_held, ctx.held),
+                                          dcfg.unexplained_ratio, dcfg.alpha)
+    else:
+        verdict = "unexplained" if hot is not None else "none"
+    explained = (float(min(1.0, 1 - (L_after - floor_L) / (L_before - floor_L)))
+                 if named.accepted and L_before > floor_L else None)
+    if remaining_cell is not None and explained is not None and explained < dcfg.explained_enough:
+        # named effects that leave a significant part of the gap: an equivalent in part, and
+        # the rest unexplained (remaining_above_floor says where)
+        verdict = "partly"
+    return verdict, explained, remaining_cell, (L_before, L_after, floor_L)
 
 
 def _read(drone, measured, dt: float):
@@ -370,34 +408,8 @@ def _name(ctx: _Naming, r_train, r_held, held_nom_w, floor_w) -> _Named:
         remaining = [c for c in ctx.cands if c.name not in {f.name for f in accepted}]
         fits = [linear_fit(c, pred, train, sigma, cur_train, base, ctx.rng) for c in remaining]
         laps.lap(f"round {rnd + 1}: linear fits of {len(remaining)} candidates")
-        L_train = float(np.mean((cur_train / sigma) ** 2))
-        # screening by the linear model's training loss; a candidate whose rollout does not
-        # beat the nominal training loss (its linearisation was optimistic: stiffness changes
-        # set off bending oscillations a finite difference misjudges) gives its place to the
-        # next one, up to two extra
-        order = [i for i in sorted(range(len(fits)), key=lambda i: fits[i].train_loss_linear)
-                 if fits[i].train_loss_linear < L_train]
-        good, tried = 0, 0
-        for i in order:
-            if good >= int(dcfg.screen) or tried >= int(dcfg.screen) + 2:
-                break
-            refine(fits[i], remaining[i], pred, train, held, sigma, base)
-            tried += 1
-            good += fits[i].train_loss < L_train
-        for f in fits:
-            _drift(ctx, f, base)
-        v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+        v, best, tie, ranking, z, passing = _screen_and_test(ctx, fits, remaining, cur_train, cur_held_w, base)
         cand_of = {c.name: c for c in remaining}
-        passed = {r["candidate"] for r in ranking if r.get("passes")}
-        passing = [f for f in fits if f.name in passed]
-        if len(passing) > 1:
-            # confusable candidates compete at their polished fits, not at how far one
-            # Gauss-Newton step took each (a strong wind stops short, an IMU bias does not)
-            for f in passing:
-                polish(f, cand_of[f.name], pred, train, held, sigma, base, iters=1)
-                if "steady_held_w" not in f.evidence:
-                    _drift(ctx, f, base)   # polish moved it and scored it steady
-            v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
         laps.lap(f"round {rnd + 1}: the screened candidates refined and tested")
         rounds.append({"round": rnd + 1, "verdict": v, "ranking": _jsonable(ranking), "z_threshold": float(z),
                        "held_loss_nominal": float(np.mean(cur_held_w))})
@@ -429,6 +441,41 @@ def _name(ctx: _Naming, r_train, r_held, held_nom_w, floor_w) -> _Named:
                 or not ctx.left_over(cur_train, train, cur_held, held)):
             break
     return _Named(accepted, base, rounds, verdict, ties, confusable, cur_train, cur_held, cur_held_w)
+
+
+def _screen_and_test(ctx: _Naming, fits, remaining, cur_train, cur_held_w, base):
+    """Refine the candidates the linear fits rank best, test them on the held-out flights:
+    (verdict, best, ties, ranking, z threshold, the fits that pass)."""
+    dcfg, pred, train, held, sigma = ctx.dcfg, ctx.pred, ctx.train, ctx.held, ctx.sigma
+    L_train = float(np.mean((cur_train / sigma) ** 2))
+    # screening by the linear model's training loss; a candidate whose rollout does not
+    # beat the nominal training loss (its linearisation was optimistic: stiffness changes
+    # set off bending oscillations a finite difference misjudges) gives its place to the
+    # next one, up to two extra
+    order = [i for i in sorted(range(len(fits)), key=lambda i: fits[i].train_loss_linear)
+             if fits[i].train_loss_linear < L_train]
+    good, tried = 0, 0
+    for i in order:
+        if good >= int(dcfg.screen) or tried >= int(dcfg.screen) + 2:
+            break
+        refine(fits[i], remaining[i], pred, train, held, sigma, base)
+        tried += 1
+        good += fits[i].train_loss < L_train
+    for f in fits:
+        _drift(ctx, f, base)
+    v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+    cand_of = {c.name: c for c in remaining}
+    passed = {r["candidate"] for r in ranking if r.get("passes")}
+    passing = [f for f in fits if f.name in passed]
+    if len(passing) > 1:
+        # confusable candidates compete at their polished fits, not at how far one
+        # Gauss-Newton step took each (a strong wind stops short, an IMU bias does not)
+        for f in passing:
+            polish(f, cand_of[f.name], pred, train, held, sigma, base, iters=1)
+            if "steady_held_w" not in f.evidence:
+                _drift(ctx, f, base)   # polish moved it and scored it steady
+        v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+    return v, best, tie, ranking, z, passing
 
 
 def _drift(ctx: _Naming, f, base: list) -> None:
