@@ -140,6 +140,26 @@ def read_logs(folder, drone_name: str, num_rotors: int, num_sensors: int, dim: i
     if not folder.is_dir():
         raise UserError(f"discrepancy.measured = {str(folder)!r} is not a folder")
     meta_path = folder / META
+    meta, rate = _read_meta(meta_path, drone_name, num_rotors, num_sensors, dim)
+    channels = channel_names(dim, num_sensors)
+    want = ["t"] + thrust_names(num_rotors) + channels
+    files = sorted(folder.glob("*.csv"))
+    if not files:
+        raise UserError(f"{folder}: no flight CSV files")
+    flights = []
+    for path in files:
+        table = _read_flight_table(path, want, max_thrust)
+        if len(table) < min_rows:
+            raise UserError(f"{path}: {len(table)} rows, need at least {min_rows}")
+        t = table["t"].to_numpy(float)
+        _check_spacing(path, meta_path, meta, t, rate)
+        flights.append(Flight(path.stem, t, table[thrust_names(num_rotors)].to_numpy(float),
+                              table[channels].to_numpy(float)))
+    return Logs(folder, meta, channels, flights)
+
+
+def _read_meta(meta_path: Path, drone_name: str, num_rotors: int, num_sensors: int, dim: int) -> tuple[dict, float]:
+    """meta.json, checked against the drone: (meta, sample rate)."""
     if not meta_path.exists():
         raise UserError(f"{meta_path}: missing (the log format needs a meta.json naming the drone and sample rate)")
     try:
@@ -157,50 +177,47 @@ def read_logs(folder, drone_name: str, num_rotors: int, num_sensors: int, dim: i
     rate = _meta_number(meta_path, meta, "sample_rate")
     if not rate > 0:
         raise UserError(f"{meta_path}: sample_rate = {meta['sample_rate']} must be > 0 Hz")
-    channels = channel_names(dim, num_sensors)
-    want = ["t"] + thrust_names(num_rotors) + channels
-    files = sorted(folder.glob("*.csv"))
-    if not files:
-        raise UserError(f"{folder}: no flight CSV files")
-    flights = []
-    for path in files:
-        try:
-            table = pd.read_csv(path)
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
-            raise UserError(f"{path}: cannot be read as CSV ({err})") from None
-        missing = [c for c in want if c not in table.columns]
-        if missing:
-            extra = [c for c in table.columns if c not in want]
-            hint = f"; unexpected column(s) {extra} (misnamed?)" if extra else ""
-            raise UserError(f"{path}: missing column(s) {missing}{hint}")
-        for c in want:
-            col = pd.to_numeric(table[c], errors="coerce").to_numpy(float)
-            bad = np.flatnonzero(~np.isfinite(col))
-            if len(bad):
-                raise UserError(f"{path}: column {c!r} has {len(bad)} NaN/non-numeric value(s), first at data row {bad[0] + 1}")
-            bound, unit, what = PLAUSIBLE[channel_kind(c)]
-            if channel_kind(c) == "u" and max_thrust is not None:
-                bound, what = 1.5 * float(max_thrust), "a rotor's command (drone.max_thrust x 1.5)"
-            wild = np.flatnonzero(np.abs(col) > bound)
-            if len(wild):
-                i = wild[0]
-                raise UserError(f"{path}: column {c!r}, data row {i + 1}: {col[i]:.6g} {unit} is implausible "
-                                f"for {what}: allowed |{c}| <= {bound:g} {unit} ({len(wild)} such row(s))")
-        if len(table) < min_rows:
-            raise UserError(f"{path}: {len(table)} rows, need at least {min_rows}")
-        t = table["t"].to_numpy(float)
-        dt = np.diff(t)
-        if np.any(dt <= 0):
-            raise UserError(f"{path}: column 't' is not strictly increasing (data row {np.flatnonzero(dt <= 0)[0] + 2})")
-        if np.any(np.abs(dt * rate - 1.0) > 0.01):
-            step = float(np.median(dt))
-            if np.all(np.abs(dt / step - 1.0) <= 0.01):
-                # the flight is evenly spaced, at another rate than meta.json states: meta.json is wrong
-                raise UserError(f"{meta_path}: sample_rate = {meta['sample_rate']} Hz contradicts the flights: "
-                                f"{path.name}'s column 't' is spaced {step:g} s ({1 / step:g} Hz); allowed the rate "
-                                f"the logs were recorded at: set sample_rate to {1 / step:g}")
-            raise UserError(f"{path}: column 't' is not spaced 1/sample_rate = {1 / rate:g} s "
-                            f"(data row {np.flatnonzero(np.abs(dt * rate - 1.0) > 0.01)[0] + 2})")
-        flights.append(Flight(path.stem, t, table[thrust_names(num_rotors)].to_numpy(float),
-                              table[channels].to_numpy(float)))
-    return Logs(folder, meta, channels, flights)
+    return meta, rate
+
+
+def _read_flight_table(path: Path, want: list[str], max_thrust: float | None) -> pd.DataFrame:
+    """One flight's CSV with every wanted column, each numeric and plausible."""
+    try:
+        table = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
+        raise UserError(f"{path}: cannot be read as CSV ({err})") from None
+    missing = [c for c in want if c not in table.columns]
+    if missing:
+        extra = [c for c in table.columns if c not in want]
+        hint = f"; unexpected column(s) {extra} (misnamed?)" if extra else ""
+        raise UserError(f"{path}: missing column(s) {missing}{hint}")
+    for c in want:
+        col = pd.to_numeric(table[c], errors="coerce").to_numpy(float)
+        bad = np.flatnonzero(~np.isfinite(col))
+        if len(bad):
+            raise UserError(f"{path}: column {c!r} has {len(bad)} NaN/non-numeric value(s), first at data row {bad[0] + 1}")
+        bound, unit, what = PLAUSIBLE[channel_kind(c)]
+        if channel_kind(c) == "u" and max_thrust is not None:
+            bound, what = 1.5 * float(max_thrust), "a rotor's command (drone.max_thrust x 1.5)"
+        wild = np.flatnonzero(np.abs(col) > bound)
+        if len(wild):
+            i = wild[0]
+            raise UserError(f"{path}: column {c!r}, data row {i + 1}: {col[i]:.6g} {unit} is implausible "
+                            f"for {what}: allowed |{c}| <= {bound:g} {unit} ({len(wild)} such row(s))")
+    return table
+
+
+def _check_spacing(path: Path, meta_path: Path, meta: dict, t: np.ndarray, rate: float) -> None:
+    """Column t strictly increasing and spaced 1 / sample_rate; a flight evenly spaced at another
+    rate says that meta.json is what is wrong."""
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        raise UserError(f"{path}: column 't' is not strictly increasing (data row {np.flatnonzero(dt <= 0)[0] + 2})")
+    if np.any(np.abs(dt * rate - 1.0) > 0.01):
+        step = float(np.median(dt))
+        if np.all(np.abs(dt / step - 1.0) <= 0.01):
+            raise UserError(f"{meta_path}: sample_rate = {meta['sample_rate']} Hz contradicts the flights: "
+                            f"{path.name}'s column 't' is spaced {step:g} s ({1 / step:g} Hz); allowed the rate "
+                            f"the logs were recorded at: set sample_rate to {1 / step:g}")
+        raise UserError(f"{path}: column 't' is not spaced 1/sample_rate = {1 / rate:g} s "
+                        f"(data row {np.flatnonzero(np.abs(dt * rate - 1.0) > 0.01)[0] + 2})")
