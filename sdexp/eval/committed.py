@@ -43,6 +43,18 @@ class Run:
     def seed(self) -> int:
         return int(self.config.get("seed", 0))
 
+    @property
+    def started(self) -> str | None:
+        """When the run started ("YYYY-MM-DD HH:MM:SS", UTC, its cli.log's first line), or None
+        where its log has none (runs from before the log kept timestamps)."""
+        log = self.folder / "cli.log"
+        try:
+            with open(log) as fh:
+                first = fh.readline()
+        except (OSError, UnicodeDecodeError):
+            return None
+        return first[1:20] if first.startswith("[") and len(first) > 20 else None
+
 
 def _text(path: Path) -> str:
     if not path.is_file():

@@ -29,6 +29,12 @@ from sdexp.eval.sota import PAPER
 from sdexp.eval.stats import interval
 
 RESULTS = Path(__file__).resolve().parents[2] / "results"
+# Changes of the simulator that move every flight: (since, commit, what). A run that started before
+# one (its cli.log's first timestamp; a log without one counts as before) is named under the table.
+SIMULATOR_CHANGES = (
+    ("2026-11-26 16:17:09", "71629c6", "each rotor's thrust a uniform traction over its disc (before: equal "
+     "shares among the patch's vertices, 1-7 cm off the anchor; docs/physics.md)"),
+)
 REPRODUCED, PARTLY, NOT, NOT_RUN = "reproduced", "partly", "not reproduced", "not run"
 
 
@@ -392,7 +398,24 @@ def render(results: Path = RESULTS) -> str:
     left = [f.relative_to(results).as_posix() for name in EXPERIMENTS for f in _split(results, name)[1]]
     if left:   # never dropped silently: the runs that do not count are named
         head += ["", "Left out (not on the quadratic simulator): " + ", ".join(f"`{f}`" for f in left) + "."]
+    head += _before_changes(results)
     return "\n".join(head + [""] + body).rstrip() + "\n"
+
+
+def _before_changes(results: Path) -> list[str]:
+    """For each simulator change, the counted runs flown before it, by experiment."""
+    out = []
+    for since, commit, what in SIMULATOR_CHANGES:
+        before = {}
+        for name in EXPERIMENTS + ("fleet",):
+            n = sum(1 for r in runs(results, name) if (r.started or "") < since)
+            if n:
+                before[name] = n
+        if before:
+            out += ["", f"Flown before the simulator changed at {commit} ({since} UTC: {what}): "
+                    + ", ".join(f"{name} ({n} run{'s' * (n != 1)})" for name, n in before.items())
+                    + "; their rows stand at the simulator they ran on."]
+    return out
 
 
 def main(argv: list[str]) -> None:

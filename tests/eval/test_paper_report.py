@@ -91,3 +91,19 @@ def test_the_fleet_through_a_low_pass_is_counted_beside_it(tmp_path):
     assert ("Pairs that fly under the rigid LQR here: 0 of 2. With every controller reading the state through a "
             "30 ms low-pass") in text and "ours 1, the rigid LQR 2" in text
     assert _fleet_verdict(tmp_path)[0] == "not reproduced"
+
+
+def test_runs_flown_before_a_simulator_change_are_named(tmp_path):
+    """A run whose log starts before the rotor-load change (or has no timestamp) is named under
+    the table with its experiment; one that started after it is not."""
+    from sdexp.eval.paper_report import SIMULATOR_CHANGES
+    since = SIMULATOR_CHANGES[0][0]
+    _sota_run(tmp_path / "sota", 0, True, 0.1, 0.3)
+    _sota_run(tmp_path / "sota_seeds" / "seed1", 1, True, 0.2, 0.5)
+    (tmp_path / "sota" / "cli.log").write_text("[2026-11-25 07:00:00,000][sdexp][INFO] - sdexp: sota\n")
+    (tmp_path / "sota_seeds" / "seed1" / "cli.log").write_text(f"[{since[:-2]}59,000][sdexp][INFO] - sdexp: sota\n")
+    line = next(x for x in render(tmp_path).splitlines() if x.startswith("Flown before the simulator changed"))
+    assert "sota (1 run)" in line
+    (tmp_path / "sota_seeds" / "seed1" / "cli.log").unlink()   # no log: counted as before
+    line = next(x for x in render(tmp_path).splitlines() if x.startswith("Flown before the simulator changed"))
+    assert "sota (2 runs)" in line
