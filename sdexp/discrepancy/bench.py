@@ -200,22 +200,32 @@ def summarize(table: pd.DataFrame) -> dict:
     for col in ("named", "ties", "top1", "truth", "verdict"):   # empty cells read back as NaN
         table[col] = table[col].fillna("").astype(str)
     single = table[table.kind == "single"]
+    out = {"scenarios": int(len(table)), **_answers(table), **_gaps(table[table.kind.isin(["single", "combo"])])}
+    out.update({
+        "scenario_seconds_median": float(np.median(table.seconds)) if "seconds" in table else None,
+        "scenario_seconds_total": float(np.sum(table.seconds)) if "seconds" in table else None,
+        "median_param_error": float(np.nanmedian(single.param_error.astype(float))) if single.param_error.notna().any() else None,
+        # how often the named effect's 95% interval holds its true strength (a bench run before the
+        # intervals existed has no such column: None)
+        "param_interval_coverage": _share(single.get("param_covered")),
+        "per_effect_param_interval_coverage": {n: _share(g.get("param_covered")) for n, g in single.groupby("truth")
+                                               if _share(g.get("param_covered")) is not None},
+        "per_effect_top1": {n: float(np.mean(g.top1 == n)) for n, g in single.groupby("truth")},
+    })
+    out["targets_met"] = _targets(out)
+    return out
+
+
+def _answers(table: pd.DataFrame) -> dict:
+    """What the workflow answered, per scenario kind: the library effects, the nulls, the
+    combinations, the effects outside the library and their variants."""
+    single = table[table.kind == "single"]
     null = table[table.kind == "null"]
     combo = table[table.kind == "combo"]
     unmod = table[table.kind == "unmodelled"]
     variant = table[table.kind == "variant"]
-    effect = table[table.kind.isin(["single", "combo"])]
     answered = table[table.kind.isin(["single", "variant"])]
-    red = effect.gap_reduction.fillna(0.0).clip(upper=1.0)
-    oracle = effect.oracle_gap_reduction if "oracle_gap_reduction" in effect else pd.Series(dtype=float)
-    # a gap counts when the true effects cut the nominal held-out loss by >= 5% (the workflow's
-    # min_gain): below that the hidden effect is not visible in these flights at all
-    if "oracle_loss_nominal" in effect:
-        measurable = (effect.oracle_loss_nominal - effect.oracle_loss_true) >= 0.05 * effect.oracle_loss_nominal
-    else:
-        measurable = oracle.notna()
-    out = {
-        "scenarios": int(len(table)),
+    return {
         "top1_accuracy": float(np.mean(single.top1 == single.truth)) if len(single) else None,
         "top1_or_tie_accuracy": float(np.mean([t == s or t in ties.split("+") for t, s, ties in
                                                zip(single.truth, single.top1, single.ties)])) if len(single) else None,
@@ -240,32 +250,40 @@ def summarize(table: pd.DataFrame) -> dict:
                                    for n, g in single.groupby("truth") if g.param_error.notna().any()},
         "per_variant_answer": dict(zip(variant.id, variant.named)) if len(variant) else {},
         "per_unmodelled_answer": dict(zip(unmod.id, unmod.verdict + ":" + unmod.named)) if len(unmod) else {},
+    }
+
+
+def _gaps(effect: pd.DataFrame) -> dict:
+    """How much of the held-out gap the named effects close, over the scenarios with an effect."""
+    red = effect.gap_reduction.fillna(0.0).clip(upper=1.0)
+    oracle = effect.oracle_gap_reduction if "oracle_gap_reduction" in effect else pd.Series(dtype=float)
+    # a gap counts when the true effects cut the nominal held-out loss by >= 5% (the workflow's
+    # min_gain): below that the hidden effect is not visible in these flights at all
+    if "oracle_loss_nominal" in effect:
+        measurable = (effect.oracle_loss_nominal - effect.oracle_loss_true) >= 0.05 * effect.oracle_loss_nominal
+    else:
+        measurable = oracle.notna()
+    return {
         "median_gap_reduction_vs_floor": float(np.median(red)) if len(red) else None,
         # against the gap the true effects close (scenarios where they close any), unnamed = 0
         "median_gap_reduction": float(np.median(oracle[measurable].clip(lower=-1.0))) if measurable.any() else None,
         "gap_measurable_scenarios": int(measurable.sum()),
         "mean_gap_reduction": float(np.mean(oracle[measurable].clip(lower=-1.0))) if measurable.any() else None,
-        "scenario_seconds_median": float(np.median(table.seconds)) if "seconds" in table else None,
-        "scenario_seconds_total": float(np.sum(table.seconds)) if "seconds" in table else None,
-        "median_param_error": float(np.nanmedian(single.param_error.astype(float))) if single.param_error.notna().any() else None,
-        # how often the named effect's 95% interval holds its true strength (a bench run before the
-        # intervals existed has no such column: None)
-        "param_interval_coverage": _share(single.get("param_covered")),
-        "per_effect_param_interval_coverage": {n: _share(g.get("param_covered")) for n, g in single.groupby("truth")
-                                               if _share(g.get("param_covered")) is not None},
-        "per_effect_top1": {n: float(np.mean(g.top1 == n)) for n, g in single.groupby("truth")},
     }
-    out["targets_met"] = {
-        "top1_accuracy>=0.9": out["top1_accuracy"] is not None and out["top1_accuracy"] >= 0.9,
-        "top1_with_library_answer>=0.9": (out["top1_with_library_answer"] is not None
-                                          and out["top1_with_library_answer"] >= 0.9),
-        "unmodelled_honest>=0.8": out["unmodelled_honest"] is not None and out["unmodelled_honest"] >= 0.8,
+
+
+def _targets(out: dict) -> dict:
+    """The issue's targets, met or not."""
+    def at_least(key, v):
+        return out[key] is not None and out[key] >= v
+    return {
+        "top1_accuracy>=0.9": at_least("top1_accuracy", 0.9),
+        "top1_with_library_answer>=0.9": at_least("top1_with_library_answer", 0.9),
+        "unmodelled_honest>=0.8": at_least("unmodelled_honest", 0.8),
         "null_false_positive_rate<=0.05": out["null_false_positive_rate"] is not None and out["null_false_positive_rate"] <= 0.05,
-        "median_gap_reduction>=0.8": out["median_gap_reduction"] is not None and out["median_gap_reduction"] >= 0.8,
-        "param_interval_coverage>=0.8": (out["param_interval_coverage"] is not None
-                                         and out["param_interval_coverage"] >= 0.8),
+        "median_gap_reduction>=0.8": at_least("median_gap_reduction", 0.8),
+        "param_interval_coverage>=0.8": at_least("param_interval_coverage", 0.8),
     }
-    return out
 
 
 def _share(flags) -> float | None:
