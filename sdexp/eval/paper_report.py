@@ -305,6 +305,31 @@ def _lowpass_line(results: Path, table, seeds: int) -> list[str]:
             f"{_pairs(other, 'rigid_lqr', seeds)} (docs/results.md, \"The state through a low-pass\").", ""]
 
 
+def _fleet_cell(table, drone: str, task: str, seeds: int) -> tuple[bool, str]:
+    """(whether ours flies the pair, its table cell: survivors, median error, the rigid LQR's)."""
+    sel = table[(table["drone"] == drone) & (table["task"] == task)]
+    ours, rigid = sel[sel["controller"] == "ours"], sel[sel["controller"] == "rigid_lqr"]
+    ok = ours[ours["survived"].astype(bool)]
+    med = float(ok["primary_value"].median()) if len(ok) else float("nan")
+    good = _flies(ours, seeds)
+    text = f"{len(ok)}/{seeds}" + (f", {med:.2g}" if len(ok) else "")
+    text = f"**{text}**" if good else text
+    if len(rigid):
+        text += f" (rigid {int(rigid['survived'].astype(bool).sum())}/{seeds})"
+    return good, text
+
+
+def _physics_cells(physics, drone: str) -> list[str]:
+    """The body's and the learned model's figures for the fleet table (seed means), or dashes."""
+    import pandas as pd
+    ph = physics.loc[drone] if drone in physics.index else None
+    if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]):
+        return ["-"] * 5
+    return [f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}", f"{ph.get('deform_reach_deg', float('nan')):.1f}",
+            " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh"),
+            f"{ph.get('model_accel_at_hover', float('nan')):.1f}"]
+
+
 def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     """results/fleet/: every drone x task x seed in one run (sdexp.eval.fleet), its fleet.csv and
     physics.csv. A cell (drone, task) flies when ours survives every seed and its median error is
@@ -340,23 +365,9 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     for drone in drones:
         row = []
         for task in tasks:
-            sel = table[(table["drone"] == drone) & (table["task"] == task)]
-            ours, rigid = sel[sel["controller"] == "ours"], sel[sel["controller"] == "rigid_lqr"]
-            ok = ours[ours["survived"].astype(bool)]
-            med = float(ok["primary_value"].median()) if len(ok) else float("nan")
-            good = _flies(ours, seeds)
-            flies[(drone, task)] = good
-            text = f"{len(ok)}/{seeds}" + (f", {med:.2g}" if len(ok) else "")
-            text = f"**{text}**" if good else text
-            if len(rigid):
-                text += f" (rigid {int(rigid['survived'].astype(bool).sum())}/{seeds})"
+            flies[(drone, task)], text = _fleet_cell(table, drone, task, seeds)
             row.append(text)
-        ph = physics.loc[drone] if drone in physics.index else None
-        phys = ["-"] * 5 if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]) else [
-            f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}", f"{ph.get('deform_reach_deg', float('nan')):.1f}",
-            " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh"),
-            f"{ph.get('model_accel_at_hover', float('nan')):.1f}"]
-        lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(phys) + " |")
+        lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(_physics_cells(physics, drone)) + " |")
     lines += ["", f"The fleet's wall time: {rs[0].metrics['wall_seconds'] / 3600:.1f} h "
               "on 2 cores. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
     lines += _lowpass_line(results, table, seeds)
