@@ -288,8 +288,6 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
     follow; fps: playback frames per second (default: the recording's, so it plays in real time).
     """
     import matplotlib
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from sdexp.log import Phase
 
     path = Path(path)
@@ -303,35 +301,12 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
     rest = frames[0] if rest is None else np.asarray(rest, dtype=float)
     if fps is None:
         fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else FRAME_RATE
-    if color == "deformation":
-        values = 100.0 * deformation(frames, rest, weights)      # cm
-        label = "distance from the rigid motion (cm)"
-    elif color == "height":
-        values = frames[..., 1]
-        label = "height y (m)"
-    else:
-        raise ValueError(f"color = {color!r}: allowed deformation, height")
-    face_values = values[:, faces].mean(axis=2)                    # (n_frames, nf)
-    vmin, vmax = (0.0, max(float(face_values.max()), 1e-3)) if color == "deformation" else \
-        (float(face_values.min()), max(float(face_values.max()), float(face_values.min()) + 1e-3))
+    face_values, label, norm = _colour(frames, rest, weights, faces, color)
     cmap = matplotlib.colormaps["viridis"]
-    norm = matplotlib.colors.Normalize(vmin, vmax)
     boxes = _boxes(obstacles)
     scope = _View(frames, rest, view)
 
-    w, h = size
-    fig = Figure(figsize=(w / DPI, h / DPI), dpi=DPI)
-    canvas = FigureCanvasAgg(fig)
-    draw = (_Draw3D if dim == 3 else _Draw2D)(fig, faces, boxes, scope)
-    bar = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=fig.add_axes((0.88, 0.18, 0.022, 0.64)))
-    bar.set_label(label, fontsize=8)
-    bar.ax.tick_params(labelsize=7)
-    if title:
-        fig.suptitle("\n".join(textwrap.fill(line, 90) for line in title.splitlines()), fontsize=10)
-    clock = fig.text(0.01, 0.015, "", fontsize=9, family="monospace", animated=True)
-    # everything but the drone, the obstacles and the clock is drawn once (blitting)
-    canvas.draw()
-    background = canvas.copy_from_bbox(fig.bbox)
+    fig, canvas, draw, clock, background = _figure(dim, faces, boxes, scope, cmap, norm, label, title, size)
     sink = _Sink(path, fps)
     try:
         phase = Phase(f"animation {path.name}", len(frames), "frames", enabled=progress)
@@ -348,6 +323,43 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
         sink.close(complete=False)
         raise
     return sink.close()
+
+
+def _colour(frames, rest, weights, faces, color: str):
+    """Each face's value in every frame, the colour bar's label and its normalisation."""
+    import matplotlib
+    if color == "deformation":
+        values = 100.0 * deformation(frames, rest, weights)      # cm
+        label = "distance from the rigid motion (cm)"
+    elif color == "height":
+        values = frames[..., 1]
+        label = "height y (m)"
+    else:
+        raise ValueError(f"color = {color!r}: allowed deformation, height")
+    face_values = values[:, faces].mean(axis=2)                    # (n_frames, nf)
+    vmin, vmax = (0.0, max(float(face_values.max()), 1e-3)) if color == "deformation" else \
+        (float(face_values.min()), max(float(face_values.max()), float(face_values.min()) + 1e-3))
+    return face_values, label, matplotlib.colors.Normalize(vmin, vmax)
+
+
+def _figure(dim: int, faces, boxes, scope, cmap, norm, label: str, title: str, size: tuple[int, int]):
+    """The figure with everything but the drone, the obstacles and the clock drawn once (blitting):
+    (figure, canvas, drawer, clock text, background)."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    w, h = size
+    fig = Figure(figsize=(w / DPI, h / DPI), dpi=DPI)
+    canvas = FigureCanvasAgg(fig)
+    draw = (_Draw3D if dim == 3 else _Draw2D)(fig, faces, boxes, scope)
+    bar = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=fig.add_axes((0.88, 0.18, 0.022, 0.64)))
+    bar.set_label(label, fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle("\n".join(textwrap.fill(line, 90) for line in title.splitlines()), fontsize=10)
+    clock = fig.text(0.01, 0.015, "", fontsize=9, family="monospace", animated=True)
+    canvas.draw()
+    return fig, canvas, draw, clock, canvas.copy_from_bbox(fig.bbox)
 
 
 class _Draw3D:
