@@ -66,8 +66,6 @@ def write_vtu_series(folder, points_seq, cells, times, point_data=None, name: st
     [(meshio cell type, array), ...]; times (n_frames,) s; point_data {name: (n_frames, nv, ...)};
     dtype: of the positions and the point data as written (float32 halves the files).
     """
-    import meshio
-
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     name = name or folder.name
@@ -87,22 +85,8 @@ def write_vtu_series(folder, points_seq, cells, times, point_data=None, name: st
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        files = []
-        for i, pts in enumerate(points_seq):
-            if pts.shape[1] == 2:
-                pts = np.c_[pts, np.zeros(len(pts), dtype=dtype)]
-            data = {}
-            for k, v in point_data.items():
-                d = np.asarray(v[i], dtype=dtype)
-                data[k] = np.c_[d, np.zeros(len(d), dtype=dtype)] if d.ndim == 2 and d.shape[1] == 2 else d
-            fname = f"{name}_{i:05d}.vtu"
-            try:
-                meshio.write(tmp / fname, meshio.Mesh(pts, blocks, point_data=data), file_format="vtu",
-                             binary=True, compression="zlib")
-            except OSError as err:
-                err.filename = str(folder / fname)   # the file the user would look for
-                raise
-            files.append(fname)
+        files = [_write_vtu(tmp, folder, f"{name}_{i:05d}.vtu", pts, blocks,
+                            {k: v[i] for k, v in point_data.items()}, dtype) for i, pts in enumerate(points_seq)]
         lines = ['<?xml version="1.0"?>',
                  '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">', "  <Collection>"]
         lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>' for t, f in zip(times, files)]
@@ -117,6 +101,24 @@ def write_vtu_series(folder, points_seq, cells, times, point_data=None, name: st
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return pvd
+
+
+def _write_vtu(tmp: Path, folder: Path, fname: str, pts, blocks, point_data: dict, dtype) -> str:
+    """One frame into ``tmp`` (2D points and vectors get z = 0); an error names it in ``folder``."""
+    import meshio
+    if pts.shape[1] == 2:
+        pts = np.c_[pts, np.zeros(len(pts), dtype=dtype)]
+    data = {}
+    for k, v in point_data.items():
+        d = np.asarray(v, dtype=dtype)
+        data[k] = np.c_[d, np.zeros(len(d), dtype=dtype)] if d.ndim == 2 and d.shape[1] == 2 else d
+    try:
+        meshio.write(tmp / fname, meshio.Mesh(pts, blocks, point_data=data), file_format="vtu",
+                     binary=True, compression="zlib")
+    except OSError as err:
+        err.filename = str(folder / fname)   # the file the user would look for
+        raise
+    return fname
 
 
 def _replace_folder(new: Path, folder: Path) -> None:
