@@ -157,59 +157,19 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     t_start, cpu_start = time.perf_counter(), time.process_time()
     drone, sim = _simulator(spec)
     centre = spec["centre"] if "centre" in spec else hover_centre(drone, spec["data"], sim_config(spec))
-    layout = drone.layout
     data = spec["data"]
     dt = float(spec["sim"].control_dt)
-    ep_steps = max(1, int(round(data.episode_seconds / dt)))
-    region2 = float(data.region) ** 2
-    w = widths(layout.dim, layout.n_s, drone.num_rotors)
-    out = {k: np.empty((n, v)) for k, v in w.items()}
-    episode = np.empty(n, dtype=np.int32)
-    tt = np.empty(n)
+    rows = _Rows(n, widths(drone.layout.dim, drone.layout.n_s, drone.num_rotors), progress)
     ends: Counter = Counter()
-    s, s_dot, e, e_dot, p, p_dot, u_a = (out[k] for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u"))
-    s_n, e_n, p_n = out["s_dot_next"], out["e_dot_next"], out["p_dot_next"]
-    raw, raw_d, raw_n = out["raw"], out["raw_dot"], out["raw_dot_next"]
-
-    i, ep, empty, last_report = 0, 0, 0, 0
-    while i < n:
+    ep, empty = 0, 0
+    while rows.i < n:
         ss_thrust, ss_noise = np.random.SeedSequence(spec["seed"], spawn_key=(chunk, ep)).spawn(2)
         cmds = commands(drone, data, centre, dt, np.random.default_rng(ss_thrust))
         sim.rng = np.random.default_rng(ss_noise)
-        r = sim.reset()
-        st = decompose(r, layout)
-        rw, rwd = raw_state(r, st, layout)
-        p0 = st.p.copy()
-        start, k = i, 0
-        while True:
-            u = next(cmds)
-            r = sim.step(u)
-            if not sim.alive:
-                ends[sim.failure.reason] += 1
-                break
-            nxt = decompose(r, layout)
-            rw1, rwd1 = raw_state(r, nxt, layout)
-            s[i], s_dot[i], e[i], e_dot[i], p[i], p_dot[i] = st.s, st.s_dot, st.e, st.e_dot, st.p, st.p_dot
-            u_a[i], s_n[i], e_n[i], p_n[i] = u, nxt.s_dot, nxt.e_dot, nxt.p_dot
-            raw[i], raw_d[i], raw_n[i] = rw, rwd, rwd1
-            episode[i], tt[i] = ep, k * dt
-            i += 1
-            k += 1
-            st, rw, rwd = nxt, rw1, rwd1
-            if progress is not None and i - last_report >= 200:
-                progress(i - last_report)
-                last_report = i
-            d = st.p - p0
-            if d @ d > region2:
-                ends["region"] += 1
-                break
-            if k >= ep_steps:
-                ends["timeout"] += 1
-                break
-            if i >= n:
-                ends["chunk_end"] += 1
-                break
-        if i == start:
+        start = rows.i
+        ends[_episode(sim, drone.layout, cmds, rows, ep, dt, max(1, int(round(data.episode_seconds / dt))),
+                      float(data.region) ** 2)] += 1
+        if rows.i == start:
             empty += 1
             if empty >= MAX_EMPTY_EPISODES:
                 reason = sim.failure.reason if sim.failure else "unknown"
@@ -218,11 +178,65 @@ def generate_chunk(spec: dict, chunk: int, n: int,
         else:
             empty = 0
         ep += 1
-    if progress is not None and i > last_report:
-        progress(i - last_report)
-    arrays = {k: v.astype(np.float32) for k, v in out.items()}
-    arrays["episode"] = episode
-    arrays["t"] = tt.astype(np.float32)
-    info = {"episodes": int(len(np.unique(episode))), "ends": dict(ends),
+    arrays = rows.arrays()
+    info = {"episodes": int(len(np.unique(arrays["episode"]))), "ends": dict(ends),
             "seconds": time.perf_counter() - t_start, "cpu_seconds": time.process_time() - cpu_start}
     return arrays, info
+
+
+class _Rows:
+    """A chunk's transitions, filled row by row (float64 while filled, float32 when done), with
+    progress reported every 200 rows."""
+
+    def __init__(self, n: int, w: dict[str, int], progress: Callable[[int], None] | None):
+        self.n, self.i, self.progress, self.reported = n, 0, progress, 0
+        self.out = {k: np.empty((n, v)) for k, v in w.items()}
+        self.episode, self.t = np.empty(n, dtype=np.int32), np.empty(n)
+
+    def put(self, st, u, nxt, raw, raw_dot, raw_dot_next, ep: int, t: float) -> None:
+        o, i = self.out, self.i
+        o["s"][i], o["s_dot"][i], o["e"][i], o["e_dot"][i], o["p"][i], o["p_dot"][i] = \
+            st.s, st.s_dot, st.e, st.e_dot, st.p, st.p_dot
+        o["u"][i], o["s_dot_next"][i], o["e_dot_next"][i], o["p_dot_next"][i] = u, nxt.s_dot, nxt.e_dot, nxt.p_dot
+        o["raw"][i], o["raw_dot"][i], o["raw_dot_next"][i] = raw, raw_dot, raw_dot_next
+        self.episode[i], self.t[i] = ep, t
+        self.i += 1
+        if self.progress is not None and self.i - self.reported >= 200:
+            self.progress(self.i - self.reported)
+            self.reported = self.i
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        if self.progress is not None and self.i > self.reported:
+            self.progress(self.i - self.reported)
+            self.reported = self.i
+        arrays = {k: v.astype(np.float32) for k, v in self.out.items()}
+        arrays["episode"] = self.episode
+        arrays["t"] = self.t.astype(np.float32)
+        return arrays
+
+
+def _episode(sim, layout, cmds, rows: _Rows, ep: int, dt: float, ep_steps: int, region2: float) -> str:
+    """One episode from rest into ``rows``, until the simulator fails (its reason), the drone
+    leaves the region, the episode's time is up (timeout) or the chunk is full (chunk_end)."""
+    r = sim.reset()
+    st = decompose(r, layout)
+    rw, rwd = raw_state(r, st, layout)
+    p0 = st.p.copy()
+    k = 0
+    while True:
+        u = next(cmds)
+        r = sim.step(u)
+        if not sim.alive:
+            return sim.failure.reason
+        nxt = decompose(r, layout)
+        rw1, rwd1 = raw_state(r, nxt, layout)
+        rows.put(st, u, nxt, rw, rwd, rwd1, ep, k * dt)
+        k += 1
+        st, rw, rwd = nxt, rw1, rwd1
+        d = st.p - p0
+        if d @ d > region2:
+            return "region"
+        if k >= ep_steps:
+            return "timeout"
+        if rows.i >= rows.n:
+            return "chunk_end"

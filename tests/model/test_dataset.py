@@ -98,8 +98,12 @@ def test_rates_are_consistent_with_the_states_without_noise(cache_dir):
         scale = np.abs(mid).max()
         assert scale > 1.0, key                                           # it does move
         assert np.median(np.abs(fd - mid)) < 0.02 * scale, key
+        # what 100 Hz does not resolve of the rod's fast bending modes: the worst channel correlates
+        # 0.992-0.993 over seeds 0-3 with the thrust shared equally among a patch's vertices, and
+        # 0.985-0.988 with it as a traction over the disc (since 2026-11-26: concentrated under the
+        # anchor, it excites the higher modes more; the same at 2 N)
         for j in range(fd.shape[1]):
-            assert np.corrcoef(fd[:, j], mid[:, j])[0, 1] > 0.99, (key, j)
+            assert np.corrcoef(fd[:, j], mid[:, j])[0, 1] > 0.98, (key, j)
     # the undecomposed state holds p and e first; its 2D rates are the gyroscope readings
     np.testing.assert_array_equal(a["raw"][:, :3], np.c_[a["p"], a["e"]])
     np.testing.assert_array_equal(a["raw_dot"][:, :3], np.c_[a["p_dot"], a["e_dot"]])
