@@ -178,16 +178,7 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     folder = final.with_suffix(".chunks")
     samples, chunk = int(spec["data"].samples), spec["chunk_samples"]
     sizes = [min(chunk, samples - c * chunk) for c in range(math.ceil(samples / chunk))]
-    infos: dict[int, dict] = {}
-    for stale in folder.glob(".*.tmp"):   # a killed generator's half-written chunks (the caller holds the lock)
-        stale.unlink(missing_ok=True)
-    for c, n in enumerate(sizes):
-        path = _chunk_path(folder, c)
-        if path.exists():
-            try:
-                infos[c] = _read_npz(path, {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n})[1]["info"]
-            except _Unusable:
-                pass  # regenerated below
+    infos = _finished_chunks(folder, key, sizes)
     resumed = len(infos)
     todo = [c for c in range(len(sizes)) if c not in infos]
     workers = max(1, min(workers, len(todo)))
@@ -205,35 +196,20 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
         elif todo:
             _run_pool(spec, key, folder, sizes, todo, workers, infos, bar)
     wall = time.perf_counter() - t0
-
-    # merge, in chunk order; episode ids made global
-    parts, offset = [], 0
-    for c, n in enumerate(sizes):
-        try:
-            arrays, _ = _read_npz(_chunk_path(folder, c), {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n})
-        except _Unusable as err:
-            try:  # another process generating the same data merged first and removed the chunks
-                arrays, meta = _read_npz(final, {"format": DATA_FORMAT, "key": key, "samples": samples})
-                return Dataset(arrays, {**meta, "cached": True})
-            except _Unusable:
-                raise RuntimeError(f"dataset chunk {_chunk_path(folder, c)} vanished or broke while "
-                                   f"merging ({err}); run again to regenerate it") from None
-        _, local = np.unique(arrays["episode"], return_inverse=True)
-        arrays["episode"] = (offset + local.ravel()).astype(np.int32)
-        offset = int(arrays["episode"].max()) + 1 if n else offset
-        parts.append(arrays)
-    arrays = {k: np.concatenate([a[k] for a in parts]) for k in KEYS}
+    merged = _merge(folder, final, key, sizes, samples)
+    if isinstance(merged, Dataset):   # another process merged first
+        return merged
+    arrays, episodes = merged
     ends = sum((Counter(infos[c]["ends"]) for c in infos), Counter())
     generated = sum(sizes[c] for c in todo)
     d = spec["drone"]
-    n_s, n_e = arrays["s"].shape[1], arrays["e"].shape[1]
     meta = {
         "format": DATA_FORMAT, "key": key, "samples": samples,
-        "drone": d.name, "dim": int(d.dim), "n_s": n_s, "n_e": n_e, "m": arrays["u"].shape[1],
-        "n_raw": arrays["raw"].shape[1], "control_dt": float(spec["sim"].control_dt),
+        "drone": d.name, "dim": int(d.dim), "n_s": arrays["s"].shape[1], "n_e": arrays["e"].shape[1],
+        "m": arrays["u"].shape[1], "n_raw": arrays["raw"].shape[1], "control_dt": float(spec["sim"].control_dt),
         "max_thrust": float(d.max_thrust), "noise": bool(spec["noise"].enabled),
         "seed": spec["seed"], **{f"data_{k}": v for k, v in data_key(spec["data"]).items()},
-        "episodes": offset, "ends": dict(ends),
+        "episodes": episodes, "ends": dict(ends),
         "failures": {r: ends.get(r, 0) for r in FAILURES},
         "chunk_samples": chunk, "chunks": len(sizes), "chunks_resumed": resumed, "workers": workers,
         "wall_seconds": wall, "generated_samples": generated,
@@ -248,6 +224,43 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     _write_npz(final, arrays, meta)
     shutil.rmtree(folder, ignore_errors=True)
     return Dataset(arrays, {**meta, "cached": False})
+
+
+def _finished_chunks(folder: Path, key: str, sizes: list[int]) -> dict[int, dict]:
+    """The summaries of the chunks a killed or earlier run left whole (the caller holds the lock);
+    its half-written ones are removed, unusable ones regenerated."""
+    infos: dict[int, dict] = {}
+    for stale in folder.glob(".*.tmp"):
+        stale.unlink(missing_ok=True)
+    for c, n in enumerate(sizes):
+        path = _chunk_path(folder, c)
+        if path.exists():
+            try:
+                infos[c] = _read_npz(path, {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n})[1]["info"]
+            except _Unusable:
+                pass
+    return infos
+
+
+def _merge(folder: Path, final: Path, key: str, sizes: list[int], samples: int):
+    """The chunks in order, episode ids made global: (arrays, episodes); or the Dataset another
+    process generating the same data merged first (it removed the chunks)."""
+    parts, offset = [], 0
+    for c, n in enumerate(sizes):
+        try:
+            arrays, _ = _read_npz(_chunk_path(folder, c), {"format": DATA_FORMAT, "key": key, "chunk": c, "samples": n})
+        except _Unusable as err:
+            try:
+                arrays, meta = _read_npz(final, {"format": DATA_FORMAT, "key": key, "samples": samples})
+                return Dataset(arrays, {**meta, "cached": True})
+            except _Unusable:
+                raise RuntimeError(f"dataset chunk {_chunk_path(folder, c)} vanished or broke while "
+                                   f"merging ({err}); run again to regenerate it") from None
+        _, local = np.unique(arrays["episode"], return_inverse=True)
+        arrays["episode"] = (offset + local.ravel()).astype(np.int32)
+        offset = int(arrays["episode"].max()) + 1 if n else offset
+        parts.append(arrays)
+    return {k: np.concatenate([a[k] for a in parts]) for k in KEYS}, offset
 
 
 def _run_pool(spec, key, folder, sizes, todo, workers, infos, bar) -> None:
