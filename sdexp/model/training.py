@@ -225,7 +225,6 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     opt = _adam(net, float(model_cfg.lr))
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=int(model_cfg.lr_step), gamma=float(model_cfg.lr_decay))
     loss = _loss_fn(str(model_cfg.loss))
-    n_batches = len(X_tr) // bs
     rows = []
     keep_best = bool(model_cfg.keep_best)
     best_loss, best_state, best_epoch = float("inf"), None, epochs
@@ -234,22 +233,11 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     # (an error closes the phase with a line that says it stopped)
     with Phase(f"training net {name}", total=epochs, unit="epochs", enabled=progress and report is None) as bar:
         for epoch in range(1, epochs + 1):
-            net.train()
-            perm = torch.randperm(len(X_tr), generator=gen)[: n_batches * bs]
-            Xp, Tp = X_tr[perm], T_tr[perm]
-            total = torch.zeros(())
-            for b in range(n_batches):
-                sl = slice(b * bs, (b + 1) * bs)
-                batch_loss = loss(net.raw_output(Xp[sl]), Tp[sl])
-                opt.zero_grad(set_to_none=True)
-                batch_loss.backward()
-                opt.step()
-                total += batch_loss.detach()
+            train_loss = _epoch(net, opt, loss, X_tr, T_tr, bs, gen)
             lr = opt.param_groups[0]["lr"]
             sched.step()
             net.eval()
             val_loss, val_l1, val_mae = _evaluate(net, X_va, T_va, loss)
-            train_loss = float(total) / n_batches
             if not np.isfinite(train_loss):
                 raise RuntimeError(f"network {name!r}: the training loss is {train_loss} at epoch {epoch}")
             if keep_best and val_loss < best_loss:
@@ -269,6 +257,24 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     history = pd.DataFrame(rows)
     history["selected"] = history["epoch"] == best_epoch
     return net.eval(), history, seconds
+
+
+def _epoch(net, opt, loss, X_tr, T_tr, bs: int, gen) -> float:
+    """One pass over the training set in shuffled full batches (the remainder dropped): the
+    mean batch loss."""
+    net.train()
+    n_batches = len(X_tr) // bs
+    perm = torch.randperm(len(X_tr), generator=gen)[: n_batches * bs]
+    Xp, Tp = X_tr[perm], T_tr[perm]
+    total = torch.zeros(())
+    for b in range(n_batches):
+        sl = slice(b * bs, (b + 1) * bs)
+        batch_loss = loss(net.raw_output(Xp[sl]), Tp[sl])
+        opt.zero_grad(set_to_none=True)
+        batch_loss.backward()
+        opt.step()
+        total += batch_loss.detach()
+    return float(total) / n_batches
 
 
 # ------------------------------------------------------------------------------ cache
