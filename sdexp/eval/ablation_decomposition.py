@@ -73,9 +73,6 @@ def combined_curve(trained, column: str) -> np.ndarray:
 
 
 def run(run: Run) -> dict:
-    from sdexp.figures import pyplot
-    plt = pyplot()
-
     from sdexp.model.dataset import load_dataset
 
     cfg, p = run.cfg, run.params
@@ -86,42 +83,11 @@ def run(run: Run) -> dict:
     raw = train_models(data, raw_model, seed, cfg.cache_dir, vf, UNDECOMPOSED)
 
     _, val_idx = data.split(vf, seed)
-    table = pd.DataFrame({"epoch": dec.history[next(iter(dec.history))]["epoch"]})
-    table["decomposed_val_rel_l1"] = combined_curve(dec, "val_rel_l1")
-    table["undecomposed_val_rel_l1"] = raw.history["raw"]["val_rel_l1"].to_numpy()
     shared = shared_channels(data)
-    if shared is not None:
-        rel = lambda t, n: np.array(t.history[n]["val_rel_l1_channels"].tolist())
-        dec_shared = np.concatenate([rel(dec, "g"), rel(dec, "h")], axis=1)          # e_dot, p_dot
-        raw_shared = rel(raw, "raw")[:, shared]                                        # the same targets
-        table["decomposed_shared_val_rel_l1"] = dec_shared.mean(1)
-        table["undecomposed_shared_val_rel_l1"] = raw_shared.mean(1)
-    table["decomposed_train_loss"] = combined_curve(dec, "train_loss")
-    table["undecomposed_train_loss"] = raw.history["raw"]["train_loss"].to_numpy()
-    for n, h in dec.history.items():
-        table[f"{n}_val_rel_l1"] = h["val_rel_l1"].to_numpy()
+    table = _curves(dec, raw, shared)
     widths = {s.name: design(data, s, val_idx[:1])[1].shape[1] for s in (*DECOMPOSED, *UNDECOMPOSED)}
     run.table(table, "ablation_decomposition")
-
-    panels = [("all", "each formulation's own targets")]
-    if shared is not None:
-        panels.insert(0, ("shared", "the targets both predict: e_dot, p_dot"))
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.2), squeeze=False)
-    for ax, (kind, title) in zip(axes[0], panels):
-        col = "{}_shared_val_rel_l1" if kind == "shared" else "{}_val_rel_l1"
-        dcol, rcol = col.format("decomposed"), col.format("undecomposed")
-        ax.plot(table["epoch"], table[dcol], color="tab:blue", lw=2, label="decomposed (d, g, h)")
-        ax.plot(table["epoch"], table[rcol], color="tab:red", lw=2, label="undecomposed (raw state)")
-        ax.axhline(1.0, color="k", ls="--", lw=0.8, label="copying the current velocity")
-        ax.set_xlabel("epoch")
-        ax.set_ylabel("validation L1 / L1 of \"no change\"")
-        ax.set_ylim(0, max(1.1, float(table[[dcol, rcol]].max().max()) * 1.05))
-        ax.set_title(title, fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle(f"{cfg.drone.name}: convergence with and without the state decomposition", fontsize=11)
-    fig.tight_layout()
-    run.figure(fig, "ablation_decomposition")
+    run.figure(_figure(table, shared is not None, cfg.drone.name), "ablation_decomposition")
 
     def final_best(col: str) -> tuple[float, float]:
         return float(table[col].iloc[-1]), float(table[col].min())
@@ -143,6 +109,51 @@ def run(run: Run) -> dict:
         "epochs": int(cfg.model.epochs),
     })
     return out
+
+
+def _curves(dec, raw, shared) -> pd.DataFrame:
+    """Per epoch, both formulations' validation error (of copying) and training loss, on their
+    own targets and, where the raw state holds them, on the targets both predict."""
+    table = pd.DataFrame({"epoch": dec.history[next(iter(dec.history))]["epoch"]})
+    table["decomposed_val_rel_l1"] = combined_curve(dec, "val_rel_l1")
+    table["undecomposed_val_rel_l1"] = raw.history["raw"]["val_rel_l1"].to_numpy()
+    if shared is not None:
+        rel = lambda t, n: np.array(t.history[n]["val_rel_l1_channels"].tolist())  # noqa: E731
+        dec_shared = np.concatenate([rel(dec, "g"), rel(dec, "h")], axis=1)          # e_dot, p_dot
+        raw_shared = rel(raw, "raw")[:, shared]                                        # the same targets
+        table["decomposed_shared_val_rel_l1"] = dec_shared.mean(1)
+        table["undecomposed_shared_val_rel_l1"] = raw_shared.mean(1)
+    table["decomposed_train_loss"] = combined_curve(dec, "train_loss")
+    table["undecomposed_train_loss"] = raw.history["raw"]["train_loss"].to_numpy()
+    for n, h in dec.history.items():
+        table[f"{n}_val_rel_l1"] = h["val_rel_l1"].to_numpy()
+    return table
+
+
+def _figure(table: pd.DataFrame, shared: bool, drone: str):
+    """The two formulations' validation curves: on the shared targets (where there are) and on
+    each one's own."""
+    from sdexp.figures import pyplot
+    plt = pyplot()
+    panels = [("all", "each formulation's own targets")]
+    if shared:
+        panels.insert(0, ("shared", "the targets both predict: e_dot, p_dot"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.2), squeeze=False)
+    for ax, (kind, title) in zip(axes[0], panels):
+        col = "{}_shared_val_rel_l1" if kind == "shared" else "{}_val_rel_l1"
+        dcol, rcol = col.format("decomposed"), col.format("undecomposed")
+        ax.plot(table["epoch"], table[dcol], color="tab:blue", lw=2, label="decomposed (d, g, h)")
+        ax.plot(table["epoch"], table[rcol], color="tab:red", lw=2, label="undecomposed (raw state)")
+        ax.axhline(1.0, color="k", ls="--", lw=0.8, label="copying the current velocity")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("validation L1 / L1 of \"no change\"")
+        ax.set_ylim(0, max(1.1, float(table[[dcol, rcol]].max().max()) * 1.05))
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"{drone}: convergence with and without the state decomposition", fontsize=11)
+    fig.tight_layout()
+    return fig
 
 
 def shared_channels(data) -> np.ndarray | None:
