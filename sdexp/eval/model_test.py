@@ -389,8 +389,7 @@ def run(run: Run) -> dict:
     run.table(horizon, "rollout_horizon")
     metrics.update(_rollout_metrics(dyn, errs, hz, horizon, X_hz, X_hz_nl, X_true, restart, dt))
     if lin_times:
-        metrics["jacobians_ms_mean"] = 1e3 * float(np.mean(lin_times))
-        metrics["jacobians_ms_median"] = 1e3 * float(np.median(lin_times))
+        metrics.update(jacobians_ms_mean=1e3 * float(np.mean(lin_times)), jacobians_ms_median=1e3 * float(np.median(lin_times)))
     return metrics
 
 
