@@ -16,6 +16,8 @@ from sdexp.config import register
 
 register()
 experiment_params.register()
+if not OmegaConf.has_resolver("sdexp.drones"):
+    OmegaConf.register_new_resolver("sdexp.drones", lambda: drone_lines())
 
 SEARCH_PATH = "pkg://sdexp.conf"
 MODULE = "sdexp.conf"
@@ -31,6 +33,15 @@ def _file(*parts: str):
 def names(group: str) -> list[str]:
     """The options of a config group (its .yaml files), sorted."""
     return sorted(f.name[:-len(".yaml")] for f in _file(group).iterdir() if f.name.endswith(".yaml"))
+
+
+def drone_lines() -> str:
+    """``sdexp --help``'s drone list (``${sdexp.drones:}`` in conf/hydra/help/sdexp.yaml): the
+    paper's drones, 3D then 2D, so that a drone's YAML is listed without a second edit."""
+    by_dim = {3: [], 2: []}
+    for name in paper_drones():
+        by_dim[int(read("drone", name).get("dim", 3))].append(name)
+    return "\n".join(f"    {'  '.join(by_dim[d])}   ({d}D)" for d in (3, 2) if by_dim[d])
 
 
 def paper_drones() -> list[str]:
