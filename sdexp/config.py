@@ -345,7 +345,7 @@ def _nonfinite(value: Any) -> bool:
     return False
 
 
-def _check(ok: bool, key: str, value: Any, allowed: str) -> None:
+def check_range(ok: bool, key: str, value: Any, allowed: str) -> None:
     """``inf`` passes ``> 0`` and ``nan`` fails every comparison: a non-finite number is always
     out of range here, whatever ``ok`` says."""
     if not ok or _nonfinite(value):
@@ -466,77 +466,6 @@ def check_finite(node: Any, prefix: str = "") -> None:
             raise UserError(f"{key} = {value!r} is not a finite number")
 
 
-# The paper's designs (supplement B's tables): rotors and peripheral IMUs each shape carries. The
-# generators can place other counts (spread evenly, or by the sensor-tree rule), but a config runs
-# the design: its rotor count exactly, and at most its IMUs (fewer measure fewer bends).
-DESIGNS = {  # shape: (num_rotors, num_sensors)
-    "donut": (4, 4), "star": (5, 4), "flower": (9, 8), "leaf": (4, 4), "octopus": (9, 8),
-    "orange_peel": (5, 5), "engine": (6, 6), "bunny": (3, 3), "diamond": (4, 8), "elephant": (2, 3),
-    "rainbow": (2, 4), "rod": (5, 8),
-}
-
-
-def check_design(cfg) -> None:
-    """drone.num_rotors and drone.num_sensors against the shape's design (DESIGNS)."""
-    if cfg.shape not in DESIGNS:
-        return
-    rotors, sensors = DESIGNS[cfg.shape]
-    if int(cfg.num_rotors) != rotors:
-        raise UserError(f"drone.num_rotors = {cfg.num_rotors} does not fit the {cfg.shape} design: "
-                        f"allowed {rotors} (its rotor sites, supplement B)")
-    if not 0 <= int(cfg.num_sensors) <= sensors:
-        raise UserError(f"drone.num_sensors = {cfg.num_sensors} does not fit the {cfg.shape} design: "
-                        f"allowed 0 to {sensors} peripheral IMUs (supplement B)")
-
-
-# A drone from a mesh file, longest side (m): sdexp's drones span 1.1-8 m; far outside this
-# range the file's unit is not the one drone.mesh.scale says (mm read as m is 1000x).
-FILE_EXTENT = (0.05, 50.0)
-MIN_ROTORS = {2: 2, 3: 3}   # thrust and the tilt(s): one rotor per controlled degree of freedom
-
-
-def check_file_drone(d) -> tuple[list[float], int | None]:
-    """The checks of a drone from drone.mesh.file before anything is meshed (the file is read:
-    sdexp.sim.mesh.meshfile): its listed rotors and IMUs, its scale, its size. Returns the
-    body's bounding lengths and, for a volume mesh given as such, its element count."""
-    def need(ok: bool, message: str) -> None:
-        if not ok:
-            raise UserError(message)
-
-    _check(d.mesh.scale > 0, "drone.mesh.scale", d.mesh.scale, "> 0 (the file's unit in metres)")
-    need(not d.mesh.mirror and d.mesh.layers == 0, "drone.mesh.mirror and drone.mesh.layers: allowed [] and 0 for a "
-         "drone from drone.mesh.file (fTetWild or Triangle meshes the file's body whole)")
-    dims = f"[x, y{', z' if d.dim == 3 else ''}]"
-    for key in ("rotors", "rotor_normals", "imus"):
-        rows = [list(r) for r in getattr(d, key)]
-        need(all(len(r) == d.dim for r in rows), f"drone.{key} = {rows}: allowed {dims} rows ({d.dim}D drone)")
-    need(len(d.rotors) >= MIN_ROTORS[d.dim], f"drone.rotors lists {len(d.rotors)}: a {d.dim}D drone needs at least "
-         f"{MIN_ROTORS[d.dim]} rotors (its thrust and its tilt" + (" about two axes)" if d.dim == 3 else ")"))
-    need(len(d.rotors) == d.num_rotors, f"drone.num_rotors = {d.num_rotors} but drone.rotors lists "
-         f"{len(d.rotors)}: allowed {len(d.rotors)}")
-    need(not d.rotor_normals or len(d.rotor_normals) == len(d.rotors), f"drone.rotor_normals lists "
-         f"{len(d.rotor_normals)}: allowed [] (+Y) or one per rotor ({len(d.rotors)})")
-    need(all(any(x != 0 for x in r) for r in d.rotor_normals), "drone.rotor_normals: allowed non-zero directions")
-    need(not d.imus or len(d.imus) == d.num_sensors, f"drone.imus lists {len(d.imus)}: allowed [] (the placement "
-         f"rule) or one per peripheral IMU (drone.num_sensors = {d.num_sensors})")
-    from sdexp.sim.mesh.meshfile import read_body
-    body = read_body(d.mesh.file, d.dim, d.mesh.scale)
-    size = [float(x) for x in body.extent]
-    lo, hi = FILE_EXTENT
-    need(lo <= max(size) <= hi, f"drone.mesh.scale = {d.mesh.scale:g} makes the body of {d.mesh.file} "
-         f"{max(size):.4g} m across: allowed {lo:g} to {hi:g} m (0.001 reads a file in millimetres)")
-    need(not list(d.size) or (len(d.size) == d.dim and all(abs(a - b) <= 0.01 * b for a, b in zip(d.size, size))),
-         f"drone.size = {list(d.size)}: allowed [] for a drone from drone.mesh.file (its size is the file's, "
-         f"{[round(x, 4) for x in size]} m)")
-    if body.elems is not None:
-        need(len(body.elems) <= MAX_ELEMENTS, f"drone.mesh.file = {d.mesh.file}: a volume mesh of "
-             f"{len(body.elems):,} elements; allowed at most about {MAX_ELEMENTS:,}")
-    # rotors and IMUs onto the body now, not after the run folder and the mesh are made (numpy only)
-    from sdexp.sim.mesh.shapes.from_file import make_file_shape
-    make_file_shape(d)
-    return size, None if body.elems is None else len(body.elems)
-
-
 def validate(cfg: DictConfig | Config) -> None:
     """Raise UserError naming the first key whose value is outside its physical range."""
     if not isinstance(cfg, DictConfig):
@@ -554,156 +483,155 @@ def validate(cfg: DictConfig | Config) -> None:
     _check_control(cfg)
     _check_discrepancy(cfg.discrepancy)
     check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
-    from sdexp.sim.physics.effects import check_config_effects, resolve_effect
-    plain = lambda x: OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x  # noqa: E731
-    check_config_effects(plain(cfg.sim.effects))   # names, parameters and ranges, before the run starts
-    for e in cfg.discrepancy.candidates:           # names and importable classes, before the logs are read
-        resolve_effect(plain(e), "discrepancy.candidates")
 
 
 def _check_drone(d) -> None:
     """The drone: material, design, and a mesh whose size is neither absurd nor degenerate."""
-    _check(d.dim in (2, 3), "drone.dim", d.dim, "2 or 3")
-    _check(d.mass > 0, "drone.mass", d.mass, "> 0 kg")
-    _check(d.youngs_modulus > 0, "drone.youngs_modulus", d.youngs_modulus, "> 0 Pa")
-    _check(0 < d.poisson_ratio < 0.5, "drone.poisson_ratio", d.poisson_ratio, "in (0, 0.5)")
-    _check(d.damping >= 0, "drone.damping", d.damping, ">= 0 1/s")
-    _check(d.deformation_damping >= 0, "drone.deformation_damping", d.deformation_damping, ">= 0 1/s")
-    _check(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
-    _check(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
+    check_range(d.dim in (2, 3), "drone.dim", d.dim, "2 or 3")
+    check_range(d.mass > 0, "drone.mass", d.mass, "> 0 kg")
+    check_range(d.youngs_modulus > 0, "drone.youngs_modulus", d.youngs_modulus, "> 0 Pa")
+    check_range(0 < d.poisson_ratio < 0.5, "drone.poisson_ratio", d.poisson_ratio, "in (0, 0.5)")
+    check_range(d.damping >= 0, "drone.damping", d.damping, ">= 0 1/s")
+    check_range(d.deformation_damping >= 0, "drone.deformation_damping", d.deformation_damping, ">= 0 1/s")
+    check_range(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
+    check_range(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
     if d.shape == "file" and d.mesh.file is None:   # drone=custom as it stands: the template
         raise UserError(f"drone.mesh.file has no value: drone {d.name} is made from a mesh file, e.g. "
                         "drone.mesh.file=body.stl 'drone.rotors=[[x,y,z],...]' (README, Your own drone)")
     if d.mesh.file is None:
-        _check(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
-        _check(len(d.size) == d.dim, "drone.size", list(d.size), f"{d.dim} positive lengths")
-        _check(all(x > 0 for x in d.size), "drone.size", list(d.size), "all lengths > 0")
+        check_range(d.num_rotors >= 1, "drone.num_rotors", d.num_rotors, ">= 1")
+        check_range(len(d.size) == d.dim, "drone.size", list(d.size), f"{d.dim} positive lengths")
+        check_range(all(x > 0 for x in d.size), "drone.size", list(d.size), "all lengths > 0")
         for key in ("rotors", "rotor_normals", "imus"):
-            _check(not getattr(d, key), f"drone.{key}", list(getattr(d, key)),
-                   "[] unless drone.mesh.file is set (the built-in shapes place their own)")
-        check_design(d)
-    _check(d.thickness is None or d.thickness > 0, "drone.thickness", d.thickness, "> 0 m")
-    _check(d.rotor_radius > 0, "drone.rotor_radius", d.rotor_radius, "> 0 m")
-    _check(d.imu_radius > 0, "drone.imu_radius", d.imu_radius, "> 0 m")
-    size, given = (list(d.size), None) if d.mesh.file is None else check_file_drone(d)
+            check_range(not getattr(d, key), f"drone.{key}", list(getattr(d, key)),
+                        "[] unless drone.mesh.file is set (the built-in shapes place their own)")
+    check_range(d.thickness is None or d.thickness > 0, "drone.thickness", d.thickness, "> 0 m")
+    check_range(d.rotor_radius > 0, "drone.rotor_radius", d.rotor_radius, "> 0 m")
+    check_range(d.imu_radius > 0, "drone.imu_radius", d.imu_radius, "> 0 m")
+    if d.mesh.file is None:   # a drone from a file: its size is the file's (sim.checks)
+        check_edge_length(d, list(d.size))
+    check_range(d.mesh.stop_energy > 0, "drone.mesh.stop_energy", d.mesh.stop_energy, "> 0")
+    check_range(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
+                                 and set(d.mesh.mirror) <= {"x", "z"}),
+                "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
+    check_range(d.mesh.layers == 0 or (d.dim == 3 and 1 <= d.mesh.layers <= 8), "drone.mesh.layers", d.mesh.layers,
+                "0 (fTetWild) or 1-8 layers through the thickness (3D drones only)")
+    check_range(d.mesh.outline in ("resampled", "exact") and (d.mesh.outline == "resampled" or d.mesh.layers),
+                "drone.mesh.outline", d.mesh.outline, "resampled, or exact with drone.mesh.layers >= 1")
+
+
+def check_edge_length(d, size: list[float]) -> None:
+    """drone.mesh.edge_length between the size that gives about MAX_ELEMENTS elements in the
+    body's bounding box and the one that gives MIN_ELEMENTS_ALONG along its longest side."""
     longest = max(float(x) for x in size)
     box = math.prod(float(x) for x in size)
     # elements in the bounding box at this edge length: regular tets (edge^3 / 6 sqrt 2) or triangles
     unit = 1 / (6 * math.sqrt(2)) if d.dim == 3 else math.sqrt(3) / 4
     finest = (box / (unit * MAX_ELEMENTS)) ** (1 / d.dim)
     coarsest = longest / MIN_ELEMENTS_ALONG
-    if given is None:   # a volume mesh given as such is not meshed: its own count is checked
-        _check(finest <= d.mesh.edge_length <= coarsest, "drone.mesh.edge_length", d.mesh.edge_length,
-               f"in [{finest:.3g}, {coarsest:.3g}] m for this {d.name} (at least {MIN_ELEMENTS_ALONG} elements "
-               f"along its {longest:g} m, at most about {MAX_ELEMENTS:,} elements)")
-    _check(d.mesh.stop_energy > 0, "drone.mesh.stop_energy", d.mesh.stop_energy, "> 0")
-    _check(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
-                                 and set(d.mesh.mirror) <= {"x", "z"}),
-           "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
-    _check(d.mesh.layers == 0 or (d.dim == 3 and 1 <= d.mesh.layers <= 8), "drone.mesh.layers", d.mesh.layers,
-           "0 (fTetWild) or 1-8 layers through the thickness (3D drones only)")
-    _check(d.mesh.outline in ("resampled", "exact") and (d.mesh.outline == "resampled" or d.mesh.layers),
-           "drone.mesh.outline", d.mesh.outline, "resampled, or exact with drone.mesh.layers >= 1")
+    check_range(finest <= d.mesh.edge_length <= coarsest, "drone.mesh.edge_length", d.mesh.edge_length,
+                f"in [{finest:.3g}, {coarsest:.3g}] m for this {d.name} (at least {MIN_ELEMENTS_ALONG} elements "
+                f"along its {longest:g} m, at most about {MAX_ELEMENTS:,} elements)")
 
 
 def _check_sim(cfg) -> None:
     """The simulator, the run's cores and seed, the obstacles."""
     d, s = cfg.drone, cfg.sim
-    _check(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
-    _check(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
-           "null or in (0, sim.control_dt]")
-    _check(0 < s.stability_safety <= 1, "sim.stability_safety", s.stability_safety, "in (0, 1]")
-    _check(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
-    _check(s.element in ELEMENTS, "sim.element", s.element, " or ".join(ELEMENTS))
-    _check(s.precision in PRECISIONS, "sim.precision", s.precision, " or ".join(PRECISIONS))
-    _check(0 <= s.mass_scaling <= MAX_MASS_SCALING, "sim.mass_scaling", s.mass_scaling,
-           f"in [0, {MAX_MASS_SCALING:g}] (added inertia as a fraction of the drone's mass; 0 = off)")
-    _check(s.friction >= 0, "sim.friction", s.friction, ">= 0")
-    _check(s.gravity >= 0, "sim.gravity", s.gravity, ">= 0 m/s^2 (it points along -y)")
-    _check(s.max_speed > 0, "sim.max_speed", s.max_speed, "> 0 m/s")
-    _check(s.max_stretch > 1, "sim.max_stretch", s.max_stretch, "> 1 (x the rest extent)")
-    _check(cfg.cores is None or cfg.cores >= 1, "cores", cfg.cores, "null (auto) or >= 1")
+    check_range(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
+    check_range(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
+                "null or in (0, sim.control_dt]")
+    check_range(0 < s.stability_safety <= 1, "sim.stability_safety", s.stability_safety, "in (0, 1]")
+    check_range(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
+    check_range(s.element in ELEMENTS, "sim.element", s.element, " or ".join(ELEMENTS))
+    check_range(s.precision in PRECISIONS, "sim.precision", s.precision, " or ".join(PRECISIONS))
+    check_range(0 <= s.mass_scaling <= MAX_MASS_SCALING, "sim.mass_scaling", s.mass_scaling,
+                f"in [0, {MAX_MASS_SCALING:g}] (added inertia as a fraction of the drone's mass; 0 = off)")
+    check_range(s.friction >= 0, "sim.friction", s.friction, ">= 0")
+    check_range(s.gravity >= 0, "sim.gravity", s.gravity, ">= 0 m/s^2 (it points along -y)")
+    check_range(s.max_speed > 0, "sim.max_speed", s.max_speed, "> 0 m/s")
+    check_range(s.max_stretch > 1, "sim.max_stretch", s.max_stretch, "> 1 (x the rest extent)")
+    check_range(cfg.cores is None or cfg.cores >= 1, "cores", cfg.cores, "null (auto) or >= 1")
     if not isinstance(cfg.seed, bool) and isinstance(cfg.seed, int) and not 0 <= cfg.seed < 2 ** 32:
         raise UserError(f"seed = {cfg.seed} is out of range: allowed 0 to {2 ** 32 - 1}")
     for i, b in enumerate(s.obstacles):
-        _check(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),
-               f"sim.obstacles[{i}]", OmegaConf.to_container(b) if isinstance(b, DictConfig) else b,
-               f"min < max, {d.dim} coordinates each")
+        check_range(len(b.min) == len(b.max) == d.dim and all(a < c for a, c in zip(b.min, b.max)),
+                    f"sim.obstacles[{i}]", OmegaConf.to_container(b) if isinstance(b, DictConfig) else b,
+                    f"min < max, {d.dim} coordinates each")
 
 
 def _check_learning(a, m) -> None:
     """The data recipe and the learned model."""
-    _check(a.samples > 0, "data.samples", a.samples, "> 0")
-    _check(len(a.thrust_range) == 2 and -1 <= a.thrust_range[0] < a.thrust_range[1] <= 1, "data.thrust_range",
-           list(a.thrust_range), "[lo, hi] with -1 <= lo < hi <= 1 (fractions of drone.max_thrust)")
-    _check(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
-    _check(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
-    _check(a.region > 0, "data.region", a.region, "> 0 m")
-    _check(0 <= a.deform_range <= 1, "data.deform_range", a.deform_range, "in [0, 1] x max_thrust")
-    _check(a.deform_hold_seconds > 0, "data.deform_hold_seconds", a.deform_hold_seconds, "> 0 s")
-    _check(a.workers >= 1, "data.workers", a.workers, ">= 1")
-    _check(a.hover in ("rigid", "shape"), "data.hover", a.hover, "rigid or shape")
-    _check(a.hover == "rigid" or a.around_hover, "data.hover", a.hover,
-           "rigid unless data.around_hover = true (shape names the centre of a draw around hover)")
-    _check(0 < a.validation_fraction < 1, "data.validation_fraction", a.validation_fraction, "in (0, 1)")
-    _check(m.hidden >= 1 and m.blocks >= 1, "model.hidden/blocks", (m.hidden, m.blocks), ">= 1")
-    _check(set(m.linear) <= {"d", "g", "h", "raw"}, "model.linear", list(m.linear), "a list of d, g, h, raw")
-    _check(m.epochs >= 1, "model.epochs", m.epochs, ">= 1")
-    _check(m.batch_size >= 1, "model.batch_size", m.batch_size, ">= 1")
-    _check(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",
-           (m.lr, m.lr_decay, m.lr_step), "lr > 0, lr_decay in (0, 1], lr_step >= 1")
-    _check(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
-    _check(m.horizon >= 1, "model.horizon", m.horizon, ">= 1 frame")
-    _check(0 <= m.command_delay <= 100, "model.command_delay", m.command_delay, "0 to 100 control steps")
+    check_range(a.samples > 0, "data.samples", a.samples, "> 0")
+    check_range(len(a.thrust_range) == 2 and -1 <= a.thrust_range[0] < a.thrust_range[1] <= 1, "data.thrust_range",
+                list(a.thrust_range), "[lo, hi] with -1 <= lo < hi <= 1 (fractions of drone.max_thrust)")
+    check_range(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
+    check_range(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
+    check_range(a.region > 0, "data.region", a.region, "> 0 m")
+    check_range(0 <= a.deform_range <= 1, "data.deform_range", a.deform_range, "in [0, 1] x max_thrust")
+    check_range(a.deform_hold_seconds > 0, "data.deform_hold_seconds", a.deform_hold_seconds, "> 0 s")
+    check_range(a.workers >= 1, "data.workers", a.workers, ">= 1")
+    check_range(a.hover in ("rigid", "shape"), "data.hover", a.hover, "rigid or shape")
+    check_range(a.hover == "rigid" or a.around_hover, "data.hover", a.hover,
+                "rigid unless data.around_hover = true (shape names the centre of a draw around hover)")
+    check_range(0 < a.validation_fraction < 1, "data.validation_fraction", a.validation_fraction, "in (0, 1)")
+    check_range(m.hidden >= 1 and m.blocks >= 1, "model.hidden/blocks", (m.hidden, m.blocks), ">= 1")
+    check_range(set(m.linear) <= {"d", "g", "h", "raw"}, "model.linear", list(m.linear), "a list of d, g, h, raw")
+    check_range(m.epochs >= 1, "model.epochs", m.epochs, ">= 1")
+    check_range(m.batch_size >= 1, "model.batch_size", m.batch_size, ">= 1")
+    check_range(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",
+                (m.lr, m.lr_decay, m.lr_step), "lr > 0, lr_decay in (0, 1], lr_step >= 1")
+    check_range(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
+    check_range(m.horizon >= 1, "model.horizon", m.horizon, ">= 1 frame")
+    check_range(0 <= m.command_delay <= 100, "model.command_delay", m.command_delay, "0 to 100 control steps")
 
 
 def _check_control(cfg) -> None:
     """The controllers, the loss-of-control rule and the sensor noise."""
     c, n = cfg.control, cfg.noise
     for key in ("q_s", "q_e", "q_p", "r"):
-        _check(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")
-    _check(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
-    _check(c.q_p_axes is None or (len(c.q_p_axes) == cfg.drone.dim and all(v > 0 for v in c.q_p_axes)),
-           "control.q_p_axes", c.q_p_axes, f"null or {cfg.drone.dim} numbers > 0 (one per axis of drone {cfg.drone.name})")
+        check_range(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")
+    check_range(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
+    check_range(c.q_p_axes is None or (len(c.q_p_axes) == cfg.drone.dim and all(v > 0 for v in c.q_p_axes)),
+                "control.q_p_axes", c.q_p_axes, f"null or {cfg.drone.dim} numbers > 0 (one per axis of drone {cfg.drone.name})")
     n_e = 3 if cfg.drone.dim == 3 else 1
-    _check(c.q_e_axes is None or (len(c.q_e_axes) == n_e and all(v > 0 for v in c.q_e_axes)),
-           "control.q_e_axes", c.q_e_axes, f"null or {n_e} numbers > 0 (one per Euler angle of drone {cfg.drone.name})")
-    _check(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
-    _check(c.kd >= 0, "control.kd", c.kd, ">= 0")
-    _check(c.waypoint_max is None or c.waypoint_max > 0, "control.waypoint_max", c.waypoint_max, "> 0 or null")
-    _check(c.n >= 1, "control.n", c.n, ">= 1 control steps")
-    _check(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
-    _check(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
-    _check(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
-    _check(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
+    check_range(c.q_e_axes is None or (len(c.q_e_axes) == n_e and all(v > 0 for v in c.q_e_axes)),
+                "control.q_e_axes", c.q_e_axes, f"null or {n_e} numbers > 0 (one per Euler angle of drone {cfg.drone.name})")
+    check_range(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
+    check_range(c.kd >= 0, "control.kd", c.kd, ">= 0")
+    check_range(c.waypoint_max is None or c.waypoint_max > 0, "control.waypoint_max", c.waypoint_max, "> 0 or null")
+    check_range(c.n >= 1, "control.n", c.n, ">= 1 control steps")
+    check_range(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
+    check_range(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
+    check_range(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
+    check_range(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
     f = cfg.flight
-    _check(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
-           "null or in (0, 180] deg")
-    _check(f.arena_margin is None or f.arena_margin > 0, "flight.arena_margin", f.arena_margin, "null or > 0 m")
+    check_range(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
+                "null or in (0, 180] deg")
+    check_range(f.arena_margin is None or f.arena_margin > 0, "flight.arena_margin", f.arena_margin, "null or > 0 m")
     nc = c.neural
-    _check(nc.iterations >= 1 and nc.batch >= 1 and nc.horizon >= 1, "control.neural.iterations/batch/horizon",
-           (nc.iterations, nc.batch, nc.horizon), ">= 1 each")
-    _check(nc.goal_radius > 0, "control.neural.goal_radius", nc.goal_radius, "> 0 m")
+    check_range(nc.iterations >= 1 and nc.batch >= 1 and nc.horizon >= 1, "control.neural.iterations/batch/horizon",
+                (nc.iterations, nc.batch, nc.horizon), ">= 1 each")
+    check_range(nc.goal_radius > 0, "control.neural.goal_radius", nc.goal_radius, "> 0 m")
     for key in ("angle_std_deg", "position_std", "angle_rate_std_deg", "velocity_std",
                 "rotor_std", "delay"):
-        _check(getattr(n, key) >= 0, f"noise.{key}", getattr(n, key), ">= 0")
+        check_range(getattr(n, key) >= 0, f"noise.{key}", getattr(n, key), ">= 0")
 
 
 def _check_discrepancy(q) -> None:
     """The discrepancy workflow and its recorder."""
-    _check(q.horizon > 0 and q.stride > 0 and q.history >= 0, "discrepancy.horizon/stride/history",
-           (q.horizon, q.stride, q.history), "horizon > 0 s, stride > 0 s, history >= 0 s")
-    _check(q.start_average >= 1, "discrepancy.start_average", q.start_average, ">= 1 rows")
-    _check(0 < q.holdout < 1, "discrepancy.holdout", q.holdout, "in (0, 1)")
-    _check(0 < q.alpha < 1, "discrepancy.alpha", q.alpha, "in (0, 1)")
-    _check(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",
-           (q.min_gain, q.screen, q.max_effects), "min_gain >= 0, screen >= 1, max_effects >= 1")
-    _check(q.floor_flights is None or q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights,
-           ">= 1 or null (as many as the unexplained test needs)")
-    _check(0 < q.explained_enough <= 1, "discrepancy.explained_enough", q.explained_enough, "in (0, 1]")
-    _check(q.unexplained_ratio >= 1 and q.second_effect_ratio >= 1, "discrepancy.unexplained_ratio/second_effect_ratio",
-           (q.unexplained_ratio, q.second_effect_ratio), ">= 1 each (multiples of the noise floor)")
+    check_range(q.horizon > 0 and q.stride > 0 and q.history >= 0, "discrepancy.horizon/stride/history",
+                (q.horizon, q.stride, q.history), "horizon > 0 s, stride > 0 s, history >= 0 s")
+    check_range(q.start_average >= 1, "discrepancy.start_average", q.start_average, ">= 1 rows")
+    check_range(0 < q.holdout < 1, "discrepancy.holdout", q.holdout, "in (0, 1)")
+    check_range(0 < q.alpha < 1, "discrepancy.alpha", q.alpha, "in (0, 1)")
+    check_range(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",
+                (q.min_gain, q.screen, q.max_effects), "min_gain >= 0, screen >= 1, max_effects >= 1")
+    check_range(q.floor_flights is None or q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights,
+                ">= 1 or null (as many as the unexplained test needs)")
+    check_range(0 < q.explained_enough <= 1, "discrepancy.explained_enough", q.explained_enough, "in (0, 1]")
+    check_range(q.unexplained_ratio >= 1 and q.second_effect_ratio >= 1, "discrepancy.unexplained_ratio/second_effect_ratio",
+                (q.unexplained_ratio, q.second_effect_ratio), ">= 1 each (multiples of the noise floor)")
     r = q.record
-    _check(r.flights >= 1 and r.seconds > 0, "discrepancy.record.flights/seconds", (r.flights, r.seconds),
-           "flights >= 1, seconds > 0")
-    _check(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")
+    check_range(r.flights >= 1 and r.seconds > 0, "discrepancy.record.flights/seconds", (r.flights, r.seconds),
+                "flights >= 1, seconds > 0")
+    check_range(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")

@@ -12,23 +12,22 @@ from hydra.errors import ConfigCompositionException
 
 from sdexp import conf
 from sdexp.cli import describe
-from sdexp.config import validate
 from sdexp.errors import EXIT_USER_ERROR, UserError
-from sdexp.eval.experiments import check_names, typed
+from sdexp.eval.experiments import preflight, typed
 from sdexp.experiment_params import PARAMS, names
 from tests.conftest import make_cfg
 
 
 def rejected(*overrides) -> str:
     """The one-line message of a config sdexp refuses: a composition error (a type the schema
-    refuses) as the cli words it, else sdexp's checks (validate, the params' ranges and options)."""
+    refuses) as the cli words it, else sdexp's checks (the preflight: validate, the simulator's
+    checks, the params' ranges and options)."""
     try:
         cfg = make_cfg(*overrides)
     except ConfigCompositionException as err:
         return describe(err, list(overrides))
     with pytest.raises(UserError) as info:
-        validate(cfg)
-        check_names(cfg)
+        preflight(cfg)
         typed(cfg)
     return str(info.value)
 
@@ -137,8 +136,7 @@ def test_bad_config_values_name_the_key_and_the_allowed_values(override, key, al
 @pytest.mark.parametrize("experiment", conf.names("experiment"))
 def test_every_experiment_declares_its_params(experiment):
     cfg = make_cfg(f"experiment={experiment}")
-    validate(cfg)
-    check_names(cfg)
+    preflight(cfg)
     typed(cfg)   # its own defaults pass its own checks
     assert list(cfg.experiment.params) == [f.name for f in __import__("dataclasses").fields(PARAMS[experiment])]
     assert sorted(cfg.experiment.params) == names(PARAMS[experiment])

@@ -10,10 +10,9 @@ import pytest
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError
 
-from sdexp.config import validate
 from sdexp.errors import UserError
 from sdexp import conf
-from sdexp.eval.experiments import run_experiment, typed
+from sdexp.eval.experiments import preflight, run_experiment, typed
 from sdexp.sim.drone import drone_names
 from tests.conftest import make_cfg, make_config
 
@@ -30,7 +29,7 @@ def test_the_twelve_paper_drones_are_configured():
 @pytest.mark.parametrize("drone", DRONES)
 def test_every_drone_config_is_valid_against_the_table(drone):
     cfg = make_cfg(f"drone={drone}")
-    validate(cfg)
+    preflight(cfg)
     assert cfg.drone.mass == 1.0 and cfg.drone.max_thrust == 10.0
     table = {  # supplement B: modulus, bounding lengths, sensors, rotors
         "donut": (1e4, [3.5, 0.36, 3.5], 4, 4), "star": (3e3, [3.6, 0.375, 3.6], 4, 5),
@@ -51,7 +50,7 @@ def test_every_drone_config_is_valid_against_the_table(drone):
 def test_every_experiment_composes(experiment):
     cfg = make_cfg(f"experiment={experiment}")
     assert cfg.experiment.name == experiment
-    validate(cfg)
+    preflight(cfg)
     config = typed(cfg)   # its params: its dataclass, the defaults in range
     assert type(config.experiment.params).__name__.lower() == experiment.replace("_", "") + "params"
 
@@ -76,7 +75,7 @@ def test_misspelled_key_is_an_error():
 ])
 def test_non_physical_values_name_the_key(override, key):
     with pytest.raises(UserError, match=key.replace(".", r"\.")):
-        validate(make_cfg(*override.split()))
+        preflight(make_cfg(*override.split()))
 
 
 def _cli(*args, cwd):

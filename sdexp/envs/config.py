@@ -42,6 +42,7 @@ def compose_config(drone: str, overrides=None):
     from sdexp import conf
     from sdexp.config import validate
     from sdexp.eval.experiments import typed
+    from sdexp.sim.checks import check_config
 
     names = conf.names("drone")
     if drone not in names:
@@ -54,4 +55,5 @@ def compose_config(drone: str, overrides=None):
     except (HydraException, OmegaConfBaseException) as err:
         raise UserError(f"overrides {args[1:]}: {one_line(err)}") from None
     validate(cfg)
+    check_config(cfg)
     return typed(cfg)

@@ -53,6 +53,15 @@ def known_names(kind: str) -> list[str]:
     return conf.names(kind)
 
 
+def preflight(cfg: DictConfig) -> None:
+    """Every check a composed config gets before anything is written: the schema and ranges
+    (config.validate), what the simulator needs of it (sim.checks), the names its params give."""
+    from sdexp.sim.checks import check_config
+    validate(cfg)
+    check_config(cfg)
+    check_names(cfg)
+
+
 def check_names(cfg: DictConfig) -> None:
     """The params that name things (a drone, an experiment, a controller) name existing ones.
     Read from the composed config, before the conversion runs the params' rules between fields,
@@ -216,8 +225,7 @@ def run_experiment(cfg: DictConfig, out_dir: Path, overrides: list[str] | None =
     experiments = conf.names("experiment")
     if name not in experiments:
         raise UserError(f"experiment.name = {name!r} is unknown: choose one of {experiments}")
-    validate(cfg)
-    check_names(cfg)
+    preflight(cfg)
     config = typed(cfg)   # the one conversion: below here, dataclasses
     check_overrides_reach(config, overrides)
     from sdexp.sim.drone import make_shape

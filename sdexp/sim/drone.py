@@ -73,7 +73,7 @@ def make_shape(cfg) -> Shape:
     from sdexp.sim.mesh.shapes import SHAPES
     if cfg.shape not in SHAPES:
         raise UserError(f"drone.shape = {cfg.shape!r} is unknown: choose one of {sorted(SHAPES)}")
-    from sdexp.config import check_design
+    from sdexp.sim.mesh.shapes import check_design
     check_design(cfg)   # rotor and IMU counts against the paper's design
     try:
         shape = SHAPES[cfg.shape](list(cfg.size), cfg.thickness, int(cfg.num_rotors),

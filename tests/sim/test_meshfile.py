@@ -209,11 +209,11 @@ def test_the_tripod_config_validates_and_its_caches_follow_the_file_content(tmp_
     import hashlib
     import shutil
 
-    from sdexp.config import mesh_path, validate
-    from sdexp.eval.experiments import typed
+    from sdexp.config import mesh_path
+    from sdexp.eval.experiments import preflight, typed
     from tests.conftest import make_cfg
     cfg = make_cfg("drone=tripod")
-    validate(cfg)
+    preflight(cfg)
     shipped = typed(cfg).drone.mesh.digest
     assert shipped == hashlib.sha256(mesh_path("tripod.stl").read_bytes()).hexdigest()[:16]
     # the same name in the working directory, other bytes: another digest, so other cache keys

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sdexp.config import MAX_ELEMENTS, check_range
 from sdexp.errors import UserError
 from sdexp.sim.mesh.meshfile import read_body
 from sdexp.sim.mesh.placement import tree_imus
@@ -84,3 +85,49 @@ def make_file_shape(cfg) -> Shape:
                  rotors=rotors, rotor_normals=rotor_normals, imus=imus, imu_normals=imu_normals,
                  frame_imus=frame, frame_normals=frame_normals,
                  volume_mesh=None if body.elems is None else (body.vertices, body.elems))
+
+
+# A drone from a mesh file, longest side (m): sdexp's drones span 1.1-8 m; far outside this
+# range the file's unit is not the one drone.mesh.scale says (mm read as m is 1000x).
+FILE_EXTENT = (0.05, 50.0)
+MIN_ROTORS = {2: 2, 3: 3}   # thrust and the tilt(s): one rotor per controlled degree of freedom
+
+
+def check_file_drone(d) -> tuple[list[float], int | None]:
+    """The checks of a drone from drone.mesh.file before anything is meshed (the file is read:
+    sdexp.sim.mesh.meshfile): its listed rotors and IMUs, its scale, its size. Returns the
+    body's bounding lengths and, for a volume mesh given as such, its element count."""
+    def need(ok: bool, message: str) -> None:
+        if not ok:
+            raise UserError(message)
+
+    check_range(d.mesh.scale > 0, "drone.mesh.scale", d.mesh.scale, "> 0 (the file's unit in metres)")
+    need(not d.mesh.mirror and d.mesh.layers == 0, "drone.mesh.mirror and drone.mesh.layers: allowed [] and 0 for a "
+         "drone from drone.mesh.file (fTetWild or Triangle meshes the file's body whole)")
+    dims = f"[x, y{', z' if d.dim == 3 else ''}]"
+    for key in ("rotors", "rotor_normals", "imus"):
+        rows = [list(r) for r in getattr(d, key)]
+        need(all(len(r) == d.dim for r in rows), f"drone.{key} = {rows}: allowed {dims} rows ({d.dim}D drone)")
+    need(len(d.rotors) >= MIN_ROTORS[d.dim], f"drone.rotors lists {len(d.rotors)}: a {d.dim}D drone needs at least "
+         f"{MIN_ROTORS[d.dim]} rotors (its thrust and its tilt" + (" about two axes)" if d.dim == 3 else ")"))
+    need(len(d.rotors) == d.num_rotors, f"drone.num_rotors = {d.num_rotors} but drone.rotors lists "
+         f"{len(d.rotors)}: allowed {len(d.rotors)}")
+    need(not d.rotor_normals or len(d.rotor_normals) == len(d.rotors), f"drone.rotor_normals lists "
+         f"{len(d.rotor_normals)}: allowed [] (+Y) or one per rotor ({len(d.rotors)})")
+    need(all(any(x != 0 for x in r) for r in d.rotor_normals), "drone.rotor_normals: allowed non-zero directions")
+    need(not d.imus or len(d.imus) == d.num_sensors, f"drone.imus lists {len(d.imus)}: allowed [] (the placement "
+         f"rule) or one per peripheral IMU (drone.num_sensors = {d.num_sensors})")
+    body = read_body(d.mesh.file, d.dim, d.mesh.scale)
+    size = [float(x) for x in body.extent]
+    lo, hi = FILE_EXTENT
+    need(lo <= max(size) <= hi, f"drone.mesh.scale = {d.mesh.scale:g} makes the body of {d.mesh.file} "
+         f"{max(size):.4g} m across: allowed {lo:g} to {hi:g} m (0.001 reads a file in millimetres)")
+    need(not list(d.size) or (len(d.size) == d.dim and all(abs(a - b) <= 0.01 * b for a, b in zip(d.size, size))),
+         f"drone.size = {list(d.size)}: allowed [] for a drone from drone.mesh.file (its size is the file's, "
+         f"{[round(x, 4) for x in size]} m)")
+    if body.elems is not None:
+        need(len(body.elems) <= MAX_ELEMENTS, f"drone.mesh.file = {d.mesh.file}: a volume mesh of "
+             f"{len(body.elems):,} elements; allowed at most about {MAX_ELEMENTS:,}")
+    # rotors and IMUs onto the body now, not after the run folder and the mesh are made (numpy only)
+    make_file_shape(d)
+    return size, None if body.elems is None else len(body.elems)
