@@ -20,7 +20,6 @@ import yaml
 
 from sdexp.cache import atomic_write
 from sdexp.discrepancy import bench_effects
-from sdexp.run import Run
 from sdexp.sim.physics.effects import LIBRARY
 
 log = logging.getLogger(__name__)
@@ -353,15 +352,4 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     metrics["wall_seconds"] = time.perf_counter() - t0
     metrics["workers"] = workers
     metrics["targets_met"]["wall_minutes<=30"] = metrics["wall_seconds"] <= 30 * 60
-    return metrics
-
-
-def run(run: Run) -> dict:
-    from sdexp.log import Phase
-
-    cfg, p = run.cfg, run.params
-    with Phase("discrepancy_bench scenarios", unit="scenarios") as bar:
-        metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, run.out_dir, cfg.cache_dir,
-                            int(cfg.seed), int(p.workers), progress=bar.update)
-    log.info(json.dumps(metrics, indent=2))
     return metrics

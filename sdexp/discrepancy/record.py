@@ -25,8 +25,6 @@ import numpy as np
 
 from sdexp.discrepancy.logs import meta_for, state_row, write_flight, write_meta
 from sdexp.errors import UserError
-from sdexp.run import Run
-from sdexp.sensing.rotations import matrix_from_euler
 
 log = logging.getLogger(__name__)
 
@@ -239,21 +237,3 @@ def record_flights(drone, sim_cfg, noise_cfg, out_dir: Path, flights: int, secon
             report(1)
     write_meta(out_dir, meta_for(drone, 1.0 / dt, **(meta_extra or {}), failures=failures))
     return paths
-
-
-def run(run: Run) -> dict:
-    """The experiment: record discrepancy.record.flights logs of cfg.drone with the simulator
-    as configured (sim.effects included) into <run dir>/logs."""
-    import json
-    from sdexp.sim.drone import build_drone
-
-    cfg = run.cfg
-    r = cfg.discrepancy.record
-    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
-    folder = run.path("logs")
-    paths = record_flights(drone, cfg.sim, cfg.noise, folder, int(r.flights), float(r.seconds),
-                           list(r.manoeuvres), int(cfg.seed), float(r.height), float(r.ground),
-                           float(r.amplitude))
-    meta = json.loads((folder / "meta.json").read_text())
-    log.info(f"sdexp: wrote {len(paths)} flights to {folder}")
-    return {"flights": len(paths), "logs": str(folder), "failures": len(meta["failures"])}

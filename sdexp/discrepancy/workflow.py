@@ -39,7 +39,6 @@ from sdexp.discrepancy.predict import calibrate_bend_map
 from sdexp.discrepancy.windows import Predictor, Windows, make_windows, subset, thin
 from sdexp.sim.physics.effects import WIND_PLANES
 from sdexp.errors import UserError
-from sdexp.run import Run
 
 log = logging.getLogger(__name__)
 
@@ -629,20 +628,3 @@ def _jsonable(x):
     if isinstance(x, (np.bool_,)):
         return bool(x)
     return x
-
-
-def run(run: Run) -> dict:
-    from sdexp.sim.drone import build_drone
-
-    cfg, out_dir = run.cfg, run.out_dir
-    q = cfg.discrepancy
-    if not q.measured:
-        raise UserError("discrepancy.measured is not set: give the folder of measured logs "
-                        "(sdexp experiment=record writes one)")
-    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
-    rep = run_workflow(drone, cfg.drone, cfg.sim, cfg.noise, q, q.measured, Path(out_dir), cfg.cache_dir,
-                       int(cfg.seed))
-    log.info(json.dumps({k: rep[k] for k in ("verdict", "effects", "ties", "unexplained", "gap")}, indent=2))
-    return {"verdict": rep["verdict"], "effects": [e["name"] for e in rep["effects"]],
-            "gap_reduction": rep["gap"]["reduction"], "held_loss_before": rep["gap"]["held_loss_before"],
-            "held_loss_after": rep["gap"]["held_loss_after"]}

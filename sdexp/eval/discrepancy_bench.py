@@ -1,0 +1,22 @@
+"""``sdexp experiment=discrepancy_bench``: the discrepancy workflow on logs with hidden effects
+(sdexp.discrepancy.bench: the scenarios, their scoring and the summary)."""
+from __future__ import annotations
+
+import json
+import logging
+
+from sdexp.discrepancy.bench import run_bench
+from sdexp.run import Run
+
+log = logging.getLogger(__name__)
+
+
+def run(run: Run) -> dict:
+    from sdexp.log import Phase
+
+    cfg, p = run.cfg, run.params
+    with Phase("discrepancy_bench scenarios", unit="scenarios") as bar:
+        metrics = run_bench(cfg.drone, cfg.sim, cfg.noise, cfg.discrepancy, p, run.out_dir, cfg.cache_dir,
+                            int(cfg.seed), int(p.workers), progress=bar.update)
+    log.info(json.dumps(metrics, indent=2))
+    return metrics
