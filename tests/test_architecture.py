@@ -22,3 +22,11 @@ def test_one_place_picks_the_matplotlib_backend():
     root = ROOT / "sdexp"
     found = [str(p.relative_to(root)) for p in root.rglob("*.py") if "matplotlib.use(" in p.read_text()]
     assert found == ["figures.py"]
+
+
+def test_an_experiment_is_found_by_its_name():
+    """conf/experiment/<name>.yaml runs sdexp/eval/<name>.py's run, for every experiment."""
+    from sdexp import conf
+    wrong = {n: conf.read("experiment", n).experiment._target_ for n in conf.names("experiment")
+             if conf.read("experiment", n).experiment._target_ != f"sdexp.eval.{n}.run"}
+    assert not wrong, wrong
