@@ -30,7 +30,7 @@ log = logging.getLogger("sdexp.cli")
 @hydra.main(version_base="1.3", config_path=conf.SEARCH_PATH, config_name="config")
 def _main(cfg: DictConfig) -> None:
     global _started
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
 
     _started = True
     _end_with_the_sweep()
@@ -44,7 +44,7 @@ def _main(cfg: DictConfig) -> None:
             from sdexp.log import to_log_files
             to_log_files(f"sdexp: error: {err}")
         fail(str(err))
-    from sdexp.eval.experiments import summary
+    from sdexp.eval.run import summary
     log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}\n{summary(cfg, metrics)}")
 
 
@@ -73,7 +73,7 @@ def _end_with_the_sweep() -> None:
 def _discard_if_empty(out_dir: Path) -> None:
     """Hydra creates the run folder (and the job log) before the run: a run that stopped on bad
     input leaves nothing behind. A folder left with logs only held no run before this one (a
-    rejected run discards what it wrote, sdexp.eval.experiments.discard; one that resumed keeps its
+    rejected run discards what it wrote, sdexp.eval.run.discard; one that resumed keeps its
     config.yaml): the logs are this run's, and go with it."""
     try:
         if out_dir.is_dir() and all(p.suffix == ".log" and p.is_file() for p in out_dir.iterdir()):

@@ -296,7 +296,7 @@ class FlightConfig:
 
 @dataclass
 class ExperimentConfig:
-    _target_: str = MISSING   # the runner, run(run: sdexp.run.Run) -> metrics
+    _target_: str = MISSING   # the runner, run(run: sdexp.eval.run.Run) -> metrics
     name: str = MISSING
     params: Any = None        # the experiment's own dataclass (sdexp.experiment_params), placed by its YAML
 
@@ -326,7 +326,7 @@ class Config:
 def register() -> None:
     ConfigStore.instance().store(name="base_config", node=Config)
     # ${sdexp.pid:} in conf/config.yaml's run and sweep folders: two runs started in the same
-    # second get different folders (sdexp.eval.experiments.claim guards any folder reused)
+    # second get different folders (sdexp.eval.run.claim guards any folder reused)
     if not OmegaConf.has_resolver("sdexp.pid"):
         OmegaConf.register_new_resolver("sdexp.pid", lambda: str(os.getpid()))
     # ${sdexp.count:drone.rotors} in conf/drone/custom.yaml: as many rotors as drone.rotors lists

@@ -2,14 +2,14 @@
 and allowed ranges. Each conf/experiment/<name>.yaml places its dataclass at experiment.params
 (``- /experiment_params@experiment.params: <name>`` in its defaults list), so Hydra composes the
 defaults into the config, refuses a key the dataclass lacks or a value of the wrong type, and
-``OmegaConf.to_object`` at the runner boundary (sdexp.eval.experiments.typed) hands the runner an instance,
+``OmegaConf.to_object`` at the runner boundary (sdexp.eval.run.typed) hands the runner an instance,
 whose ``__post_init__`` checks the ranges.
 
 A field's ``metadata`` says what is allowed beyond its type: ``range`` (a predicate and its
 text, applied to every number of a list or mapping) and ``names`` (every value must name one
 of those: an option of that config group, a drone or an experiment, or with "controller" a
 registered controller; checked where the configs and the registry are known, before the
-conversion: sdexp.eval.experiments.check_names).
+conversion: sdexp.eval.run.check_names).
 """
 from __future__ import annotations
 

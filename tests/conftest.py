@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_module
 
-from sdexp.eval.experiments import typed
+from sdexp.eval.run import typed
 
 # the sdexp processes the tests start run this checkout's code, not whichever one is installed
 # (an editable install of another worktree would otherwise be tested in their place)

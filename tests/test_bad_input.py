@@ -13,7 +13,7 @@ from hydra.errors import ConfigCompositionException
 from sdexp import conf
 from sdexp.cli import describe
 from sdexp.errors import EXIT_USER_ERROR, UserError
-from sdexp.eval.experiments import preflight, typed
+from sdexp.eval.run import preflight, typed
 from sdexp.experiment_params import PARAMS, names
 from tests.conftest import make_cfg
 
@@ -208,7 +208,7 @@ def _fake_finished_run(folder, cfg, metrics):
 
 
 def test_a_finished_run_is_skipped_only_with_the_same_resolved_config(tmp_path):
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     cfg = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[rod]")
     before = _fake_finished_run(tmp_path / "run", cfg, {"rod_realtime_factor": 1.5})
     # same config: the old metrics, nothing run (a real bench_sim would have written bench_sim.csv)
@@ -233,9 +233,9 @@ def test_a_finished_run_is_skipped_only_with_the_same_resolved_config(tmp_path):
 
 
 def test_a_folder_in_use_by_a_live_run_is_an_error_and_a_killed_runs_lock_is_taken_over(tmp_path):
-    from sdexp.eval.experiments import RUN_LOCK, claim
+    from sdexp.eval.run import RUN_LOCK, claim
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from pathlib import Path; from sdexp.eval.experiments "
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; from sdexp.eval.run "
          "import claim; claim(Path(sys.argv[1])); print('held', flush=True); time.sleep(60)", str(tmp_path)],
         stdout=subprocess.PIPE, text=True)
     try:
@@ -260,7 +260,7 @@ def _try_claim_and_hold(folder):
     import os
     import time
     from pathlib import Path
-    from sdexp.eval.experiments import claim
+    from sdexp.eval.run import claim
     marks = Path(folder).parent / (Path(folder).name + "-tried")
     marks.mkdir(exist_ok=True)
     try:
@@ -276,7 +276,7 @@ def _try_claim_and_hold(folder):
 
 
 def test_an_output_folder_that_is_a_file_is_a_user_error(tmp_path):
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     (tmp_path / "run").write_text("")
     with pytest.raises(UserError, match="cannot write the run's output folder"):
         run_experiment(make_cfg("experiment=gallery", "experiment.params.drones=[rod]"), tmp_path / "run")
@@ -394,7 +394,7 @@ def test_bad_meta_numbers_name_the_key(tmp_path, meta, words):
 
 def test_a_drone_override_that_no_benchmarked_drone_sees_is_an_error():
     """The README's old sweep: drone.* landed on the default flower while bench_sim ran the rod."""
-    from sdexp.eval.experiments import check_overrides_reach
+    from sdexp.eval.run import check_overrides_reach
     args = ["experiment=bench_sim", "experiment.params.drones=[rod]", "drone.youngs_modulus=3000"]
     with pytest.raises(UserError, match=r"drone\.youngs_modulus=3000 changes drone flower.*add drone=rod"):
         check_overrides_reach(make_cfg(*args), args)
@@ -402,7 +402,7 @@ def test_a_drone_override_that_no_benchmarked_drone_sees_is_an_error():
 
 
 def test_an_unknown_design_param_is_an_error_before_anything_is_written(tmp_path):
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     with pytest.raises(UserError, match="petal_widht"):
         run_experiment(make_cfg("experiment=gallery", "experiment.params.drones=[flower]",
                                 "+drone.params.petal_widht=0.5"), tmp_path / "run")

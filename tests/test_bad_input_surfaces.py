@@ -229,7 +229,7 @@ def _cfg(*overrides):
     ("fill_the_disk", ["sota.csv", "No space left on device", "MB free there", "hydra.run.dir=<folder>"]),
 ])
 def test_a_rejected_run_leaves_nothing_that_blocks_its_corrected_rerun(tmp_path, cache_dir, runner, words):
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     bad = _cfg(f"experiment._target_=tests.test_bad_input_surfaces.{runner}")
     with pytest.raises(UserError) as info:
         run_experiment(bad, tmp_path / "run")
@@ -241,7 +241,7 @@ def test_a_rejected_run_leaves_nothing_that_blocks_its_corrected_rerun(tmp_path,
 
 def test_a_rejected_resumed_run_keeps_the_earlier_runs_files(tmp_path):
     from omegaconf import OmegaConf
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     bad = _cfg("experiment._target_=tests.test_bad_input_surfaces.reject_after_writing")
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "config.yaml").write_text(OmegaConf.to_yaml(bad, resolve=True))   # killed earlier
@@ -300,7 +300,7 @@ def test_a_full_disk_while_writing_a_data_chunk_leaves_no_half_chunk(tmp_path, m
 
 def test_a_full_cache_disk_in_a_run_names_the_cache(tmp_path, cache_dir, monkeypatch):
     import errno
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     from sdexp.eval import gallery
 
     def full(run):
@@ -314,7 +314,7 @@ def test_a_full_cache_disk_in_a_run_names_the_cache(tmp_path, cache_dir, monkeyp
 
 def test_a_full_disk_while_writing_a_table_leaves_no_half_table(tmp_path, monkeypatch):
     import pandas as pd
-    from sdexp.run import Run
+    from sdexp.eval.run import Run
     monkeypatch.setattr(pd.DataFrame, "to_csv", lambda self, path, **kw: _half_then_full()(path))
     with pytest.raises(OSError) as info:
         Run(None, tmp_path).table(pd.DataFrame({"a": [1]}), "sota")

@@ -12,7 +12,7 @@ from omegaconf.errors import ConfigKeyError
 
 from sdexp.errors import UserError
 from sdexp import conf
-from sdexp.eval.experiments import preflight, run_experiment, typed
+from sdexp.eval.run import preflight, run_experiment, typed
 from sdexp.sim.drone import drone_names
 from tests.conftest import make_cfg, make_config
 

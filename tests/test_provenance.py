@@ -22,7 +22,7 @@ def test_a_run_logs_its_code(tmp_path, cache_dir, caplog):
     import logging
 
     from tests.conftest import make_cfg
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     cfg = make_cfg("experiment=gallery", "experiment.params.drones=[rod]", f"cache_dir={cache_dir}")
     with caplog.at_level(logging.INFO):
         run_experiment(cfg, tmp_path)

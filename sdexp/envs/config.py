@@ -41,7 +41,7 @@ def compose_config(drone: str, overrides=None):
 
     from sdexp import conf
     from sdexp.config import validate
-    from sdexp.eval.experiments import typed
+    from sdexp.eval.run import typed
     from sdexp.sim.checks import check_config
 
     names = conf.names("drone")

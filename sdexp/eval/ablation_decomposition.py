@@ -51,7 +51,7 @@ import pandas as pd
 
 from sdexp.model.specs import DECOMPOSED, UNDECOMPOSED
 from sdexp.model.training import design, train_models
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

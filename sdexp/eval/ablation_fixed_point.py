@@ -21,7 +21,7 @@ import pandas as pd
 from sdexp.control.fixed_point import find_fixed_point, pollute
 from sdexp.eval.controllers import ours
 from sdexp.eval.flights import Setup, flight_table
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from sdexp.control.lqr import LqrFailure, lqr_gain
 from sdexp.control.tasks import Task
 from sdexp.eval.controllers import build, ours
 from sdexp.eval.flights import Setup
-from sdexp.run import Run
+from sdexp.eval.run import Run
 from sdexp.sensing import State
 
 log = logging.getLogger(__name__)

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 from sdexp.eval.convergence import converged_response, response_errors
 from sdexp import conf
-from sdexp.run import Run
+from sdexp.eval.run import Run
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
 

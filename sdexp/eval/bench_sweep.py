@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

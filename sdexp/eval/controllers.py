@@ -81,7 +81,7 @@ def _neural(cfg, sim: Simulator, dyn, data, trained, progress: bool, **_) -> Neu
 # name -> builder(cfg, sim, dyn=, data=, trained=, progress=): the controller (its ``name`` is
 # this key), configured by ``cfg.control``; a builder takes what it needs and ignores the rest.
 # The names an experiment's ``controllers`` may list, checked before a run starts
-# (sdexp.eval.experiments.check_names). A new controller: its class (the Controller protocol)
+# (sdexp.eval.run.check_names). A new controller: its class (the Controller protocol)
 # and one line here.
 CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "ours": _ours, "rigid_lqr": _rigid_lqr, "geometry_lqr": _geometry_lqr, "neural": _neural,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from sdexp.discrepancy.workflow import run_workflow
 from sdexp.errors import UserError
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

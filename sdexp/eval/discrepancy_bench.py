@@ -6,7 +6,7 @@ import json
 import logging
 
 from sdexp.discrepancy.bench import run_bench
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

@@ -39,7 +39,7 @@ import pandas as pd
 
 from sdexp import conf
 from sdexp.experiment_params import FleetParams
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

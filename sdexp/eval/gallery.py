@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 
 from sdexp.eval.bench_sim import drone_config
-from sdexp.run import Run
+from sdexp.eval.run import Run
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.mesh.surface import face_normals
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, ending, flight_table
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 
 def schedule(n_s: int, angle: float, settle: float, ramp: float, hold: float) -> tuple[list, list]:

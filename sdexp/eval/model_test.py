@@ -50,7 +50,7 @@ from sdexp.model.dynamics import LearnedDynamics, state_sizes
 from sdexp.model.specs import DECOMPOSED
 from sdexp.model.identification import identify
 from sdexp.model.training import design, design_rows, history_table, loss_plot
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ import pandas as pd
 
 from sdexp.eval.controllers import ours
 from sdexp.eval.flights import Setup, flight_table
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from sdexp.eval.flights import Setup, ending, flight_table
-from sdexp.run import Run
+from sdexp.eval.run import Run
 from sdexp.sim.rigid.statics import held_bend, outer_rotors
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 from sdexp.discrepancy.record import record_flights
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from sdexp.errors import UserError
 from sdexp.eval import stats
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

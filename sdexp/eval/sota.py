@@ -20,7 +20,7 @@ import pandas as pd
 
 from sdexp.eval.flights import Setup, ending, flight_table, position_plot
 from sdexp.experiment_params import SotaParams
-from sdexp.run import Run
+from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
 

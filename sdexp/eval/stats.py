@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from sdexp.errors import UserError
-from sdexp.eval.experiments import NOT_COMPARED
+from sdexp.eval.run import NOT_COMPARED
 
 # not what tells a group from another: the seed, and what a rerun does not compare either
 IGNORED_KEYS = ("seed", *NOT_COMPARED)

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from sdexp.experiment_params import BeamParams
-from sdexp.run import Run
+from sdexp.eval.run import Run
 from sdexp.sim.physics.fem import FemModel, build_fem, stable_substep
 from sdexp.sim.physics.integrator import Body
 from sdexp.sim.physics.quadratic import quadratic_mesh

@@ -1,7 +1,7 @@
 """The simulator's own checks of a validated config (``sdexp.config.validate`` checks the
 schema and the ranges; these need the simulator's parts): a built-in drone against its paper
 design, a drone from a mesh file against its file (read before anything is meshed), and the
-effects against the effect library. Run by the run's preflight (sdexp.eval.experiments) and the
+effects against the effect library. Run by the run's preflight (sdexp.eval.run) and the
 Gymnasium environments' config, before a folder or a mesh is made."""
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ import json
 import pytest
 
 from sdexp.errors import UserError
-from sdexp.eval.experiments import run_experiment
+from sdexp.eval.run import run_experiment
 from tests.discrepancy.conftest import SMALL
 from tests.conftest import make_cfg
 

@@ -85,7 +85,7 @@ def compare(experiment: str, metrics: dict, reference: dict, rel_tol: float = 0.
 
 
 def regenerate(experiments, cache_dir: str | None = None) -> None:
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     from tests.conftest import make_cfg
 
     cache_dir = cache_dir or tempfile.mkdtemp(prefix="sdexp-ref-")

@@ -9,7 +9,7 @@ import pytest
 
 from sdexp.control.rollout import FrameRecorder, fly, metrics
 from sdexp.eval import animation
-from sdexp.eval.experiments import run_experiment
+from sdexp.eval.run import run_experiment
 from tests.eval.references import reduced_overrides
 from sdexp.sim.mesh.surface import boundary_faces
 from sdexp.sim.physics.quadratic import quadratic_mesh

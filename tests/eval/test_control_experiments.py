@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from sdexp.eval.experiments import run_experiment
+from sdexp.eval.run import run_experiment
 from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
 from tests.conftest import make_cfg, make_config
 

@@ -9,7 +9,7 @@ import pytest
 
 from sdexp.errors import UserError
 from sdexp.eval import fleet
-from sdexp.eval.experiments import run_experiment
+from sdexp.eval.run import run_experiment
 from sdexp.experiment_params import FleetParams
 from tests.eval.references import REFERENCE_DIR, compare, reduced_overrides
 from tests.conftest import make_cfg, make_config

@@ -9,7 +9,7 @@ hold it up (more samples, data.around_hover), then drop the mark."""
 import numpy as np
 import pytest
 
-from sdexp.eval.experiments import run_experiment
+from sdexp.eval.run import run_experiment
 from tests.eval.references import SHRUNK
 from tests.conftest import make_cfg
 

@@ -185,7 +185,7 @@ def test_dynamics_from_trained_nets_and_rollouts():
 # ------------------------------------------------------------------------------ experiments, shrunk
 
 def _run_or_skip(tmp_path, cache_dir, *overrides):
-    from sdexp.eval.experiments import run_experiment
+    from sdexp.eval.run import run_experiment
     from tests.conftest import make_cfg
 
     cfg = make_cfg(*SHRUNK, f"cache_dir={cache_dir}", *overrides)

@@ -210,7 +210,7 @@ def test_the_tripod_config_validates_and_its_caches_follow_the_file_content(tmp_
     import shutil
 
     from sdexp.config import mesh_path
-    from sdexp.eval.experiments import preflight, typed
+    from sdexp.eval.run import preflight, typed
     from tests.conftest import make_cfg
     cfg = make_cfg("drone=tripod")
     preflight(cfg)
