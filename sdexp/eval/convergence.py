@@ -122,9 +122,8 @@ def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int 
     """Under the fixed load, static and linear: ``bend``, the RMS bend (deg) of the peripheral
     IMUs as the sensor pipeline reads it, and ``compliance``, the work of the balanced load
     fb . u (J): the stiffness of the whole body (for one load a conforming mesh underestimates
-    it, too stiff). The
-    balanced load's work does not depend on the rigid part of u, which is arbitrary (the
-    unbalanced load dotted with u did: -9% to +20% of it). The bend is what the controller sees,
+    it, too stiff). The balanced load's work does not depend on the rigid part of u, which is
+    arbitrary (the unbalanced load dotted with u did: -9% to +20% of it). The bend is what the controller sees,
     but it is read from the few surface nodes inside each IMU patch; where it is below a degree
     (the compact 2D drones) which nodes fall inside moves it by more than the elements do.
     And ``freq``, the first ``modes`` free-free frequencies (Hz, HRZ-lumped mass as simulated;
