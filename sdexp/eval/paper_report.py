@@ -287,9 +287,10 @@ def _pairs(table, controller: str, seeds: int) -> int:
     return sum(_flies(g, seeds) for _, g in rows.groupby(["drone", "task"]))
 
 
-def _lowpass_line(results: Path, table, seeds: int) -> list[str]:
+def _lowpass_line(results: Path, table, seeds: int, fleet: Run) -> list[str]:
     """results/fleet_lowpass/ (every controller reading the state through control.lowpass), when
-    committed: the pairs each controller flies there beside here."""
+    committed: the pairs each controller flies there beside here, and whether the simulator changed
+    between the two runs."""
     import pandas as pd
 
     folder = results / "fleet_lowpass"
@@ -299,9 +300,11 @@ def _lowpass_line(results: Path, table, seeds: int) -> list[str]:
     other = pd.read_csv(folder / "fleet.csv")
     tau = float(run.config["control"]["lowpass"])
     n = len(table.groupby(["drone", "task"]))
+    between = [c for since, c, _ in SIMULATOR_CHANGES if (run.started or "") < since <= (fleet.started or "")]
+    note = f"; flown before the simulator changed at {', '.join(between)}, this table after" if between else ""
     return [f"Pairs that fly under the rigid LQR here: {_pairs(table, 'rigid_lqr', seeds)} of {n}. With every controller "
             f"reading the state through a {1000 * tau:.0f} ms low-pass (`results/fleet_lowpass/`, `control.lowpass`: the "
-            f"IMUs ride the bodies' elastic modes): ours {_pairs(other, 'ours', seeds)}, the rigid LQR "
+            f"IMUs ride the bodies' elastic modes{note}): ours {_pairs(other, 'ours', seeds)}, the rigid LQR "
             f"{_pairs(other, 'rigid_lqr', seeds)} (docs/results.md, \"The state through a low-pass\").", ""]
 
 
@@ -370,7 +373,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
         lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(_physics_cells(physics, drone)) + " |")
     lines += ["", f"The fleet's wall time: {rs[0].metrics['wall_seconds'] / 3600:.1f} h "
               "on 2 cores. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
-    lines += _lowpass_line(results, table, seeds)
+    lines += _lowpass_line(results, table, seeds, rs[0])
     n_fly = sum(flies.values())
     per_task = ", ".join(f"{t} {sum(flies[(d, t)] for d in drones)}" for t in tasks)
     all_tasks = sum(all(flies[(d, t)] for t in tasks) for d in drones)
