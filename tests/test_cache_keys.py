@@ -9,7 +9,7 @@ from tests.conftest import make_config
 
 # the keys of the SOTA flower's and the fleet's donut's (seed 0) data, as of DATA_FORMAT 4 (the rotor
 # thrust a traction over its disc, 2026-11-26: the deliberate change that last moved them; the
-# results made before it, results/sota among them, were built with the format before)
+# fleet in results/fleet was built with these; results/sota and the others before it with the format before)
 STORED = {("experiment=sota", "drone=flower"): "data-ec1665ee04831950"}
 
 
