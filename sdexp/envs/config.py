@@ -41,8 +41,7 @@ def compose_config(drone: str, overrides=None):
 
     from sdexp import conf
     from sdexp.config import validate
-    from sdexp.eval.run import typed
-    from sdexp.sim.checks import check_config
+    from sdexp.eval.run import simulator_checks, typed
 
     names = conf.names("drone")
     if drone not in names:
@@ -55,5 +54,5 @@ def compose_config(drone: str, overrides=None):
     except (HydraException, OmegaConfBaseException) as err:
         raise UserError(f"overrides {args[1:]}: {one_line(err)}") from None
     validate(cfg)
-    check_config(cfg)
+    simulator_checks(cfg)
     return typed(cfg)

@@ -95,10 +95,18 @@ def known_names(kind: str) -> list[str]:
 def preflight(cfg: DictConfig) -> None:
     """Every check a composed config gets before anything is written: the schema and ranges
     (config.validate), what the simulator needs of it (sim.checks), the names its params give."""
-    from sdexp.sim.checks import check_config
     validate(cfg)
-    check_config(cfg)
+    simulator_checks(cfg)
     check_names(cfg)
+
+
+def simulator_checks(cfg: DictConfig) -> None:
+    """sim.checks on the composed config, its lists handed over plain."""
+    from sdexp.sim.checks import check_config
+
+    def plain(x):
+        return OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x
+    check_config(cfg.drone, plain(cfg.sim.effects), [plain(e) for e in cfg.discrepancy.candidates])
 
 
 def check_names(cfg: DictConfig) -> None:
