@@ -14,13 +14,13 @@ A runner is ``run(run: Run) -> dict`` of metrics in ``sdexp/eval/<name>.py``, na
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 import importlib
 import json
 import logging
 import os
 import random
 import socket
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -62,6 +62,7 @@ class Run:
         path = self.path(f"{name}.png")
         save_figure(fig, path, dpi)
         return path
+
 
 def runner(cfg) -> Callable:
     """The experiment's runner: the function its ``experiment._target_`` names."""
