@@ -184,7 +184,7 @@ def refined(mesh, r: float, dim: int):
     return replace(mesh, **out)
 
 
-def converged_response(drone_cfg, cache_dir: str, refine=(1.5, 2.0, 3.0), gravity: float = 9.81,
+def converged_response(drone_cfg, cache_dir: str, refine: list[float], gravity: float = 9.81,
                        load: float = 2.0, element: str = "quadratic") -> dict:
     """static_response of ``element`` meshes r times finer (``refined``) for r in ``refine`` and
     the Richardson extrapolate of each quantity (``<q>_converged``, ``<q>_order``,
