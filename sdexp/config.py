@@ -236,6 +236,10 @@ class ControlConfig:
     # constant, so that the rate feedback stops pumping a soft elastic mode the IMUs sit on (the
     # rainbow's 5 Hz mode, control/lowpass.py); 0: the state as read (the paper)
     lowpass: float = 0.0
+    # ours: the phase (deg) the feedback's fastest rate may lose over the command delay
+    # (model.command_delay control steps): R is raised until max |eig(B K)| x delay <= this
+    # (control/relinearizing.py max_rate); null: R as given (the paper)
+    delay_phase_deg: Optional[float] = None
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 
 
@@ -606,6 +610,10 @@ def _check_control(cfg) -> None:
     check_range(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
     check_range(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
     check_range(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
+    check_range(c.delay_phase_deg is None or 0 < c.delay_phase_deg <= 180, "control.delay_phase_deg",
+                c.delay_phase_deg, "in (0, 180] deg or null")
+    check_range(c.delay_phase_deg is None or cfg.model.command_delay > 0, "control.delay_phase_deg",
+                c.delay_phase_deg, "null while model.command_delay is 0 (there is no delay to bound)")
     f = cfg.flight
     check_range(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
                 "null or in (0, 180] deg")

@@ -66,6 +66,8 @@ def rejected(*overrides) -> str:
     ("control.bend_snr=-1", "control.bend_snr", ">= 0"),
     ("control.q_s_alike=-1", "control.q_s_alike", ">= 0"),
     ("control.lowpass=-0.01", "control.lowpass", "in [0, 1] s"),
+    ("control.delay_phase_deg=0", "control.delay_phase_deg", "in (0, 180] deg"),
+    ("control.delay_phase_deg=45", "control.delay_phase_deg", "null while model.command_delay is 0"),
     ("control.q_p_axes=[1,1]", "control.q_p_axes", "3 numbers > 0"),
     ("control.q_p_axes=[1,1,-2]", "control.q_p_axes", "one per axis"),
     ("control.q_e_axes=[1,1]", "control.q_e_axes", "one per Euler angle"),

@@ -47,7 +47,14 @@ def ours(cfg, dyn, max_thrust: float, **kw) -> RelinearizingLQR:
     return RelinearizingLQR(dyn, q, c.r, c.kp, c.kd, c.n, max_thrust, dt=riccati_step(cfg),
                             feedforward=bool(c.feedforward), waypoint_max=c.waypoint_max,
                             regulated=None if len(regulated) == len(q) else regulated,
-                            q_alike=float(c.q_s_alike), velocity_scale=float(c.velocity_scale), **kw)
+                            q_alike=float(c.q_s_alike), velocity_scale=float(c.velocity_scale),
+                            max_rate=max_feedback_rate(cfg), **kw)
+
+
+def max_feedback_rate(cfg) -> float | None:
+    """control.delay_phase_deg over the command delay, in rad/s (None: no bound)."""
+    phase, delay = cfg.control.delay_phase_deg, int(cfg.model.command_delay)
+    return None if phase is None else float(np.radians(phase)) / (delay * float(cfg.sim.control_dt))
 
 
 def state_sizes_of(dyn) -> dict[str, int]:

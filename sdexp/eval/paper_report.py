@@ -34,6 +34,8 @@ RESULTS = Path(__file__).resolve().parents[2] / "results"
 SIMULATOR_CHANGES = (
     ("2026-11-26 16:17:09", "71629c6", "each rotor's thrust a uniform traction over its disc (before: equal "
      "shares among the patch's vertices, 1-7 cm off the anchor; docs/physics.md)"),
+    ("2026-11-26 19:06:09", "d22a22b", "that traction lumped positive over the surface's linear pieces, "
+     "float32 elastic forces, mass scaling 0.005 (docs/physics.md, docs/speed.md)"),
 )
 REPRODUCED, PARTLY, NOT, NOT_RUN = "reproduced", "partly", "not reproduced", "not run"
 
@@ -417,18 +419,20 @@ def render(results: Path = RESULTS) -> str:
 
 
 def _before_changes(results: Path) -> list[str]:
-    """For each simulator change, the counted runs flown before it, by experiment."""
-    out = []
+    """The counted runs flown before a simulator change, by experiment, each named under the
+    first change it missed (so it missed every later one too)."""
+    out, after = [], ""
     for since, commit, what in SIMULATOR_CHANGES:
         before = {}
         for name in EXPERIMENTS + ("fleet",):
-            n = sum(1 for r in runs(results, name) if (r.started or "") < since)
+            n = sum(1 for r in runs(results, name) if after <= (r.started or "") < since)
             if n:
                 before[name] = n
         if before:
             out += ["", f"Flown before the simulator changed at {commit} ({since} UTC: {what}): "
                     + ", ".join(f"{name} ({n} run{'s' * (n != 1)})" for name, n in before.items())
                     + "; their rows stand at the simulator they ran on."]
+        after = since
     return out
 
 

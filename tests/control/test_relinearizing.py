@@ -424,3 +424,34 @@ def test_ours_weighs_the_parting_of_the_bends_a_task_moves_together(q_alike):
     np.testing.assert_allclose(ctl.Q, expect)
     ctl.reset(Task(start=np.zeros(2), target=np.zeros(2), seconds=1.0, n_s=3))   # no bend target: the diagonal
     np.testing.assert_array_equal(ctl.Q, diagonal)
+
+
+def test_ours_bounds_its_feedback_rate_by_the_phase_over_the_command_delay():
+    from sdexp.eval.controllers import ours
+    from tests.conftest import make_config
+    dyn = PlanarCopter(True)
+    assert ours(make_config("noise=none"), dyn, TMAX).max_rate is None            # the paper
+    cfg = make_config("control.delay_phase_deg=45", "model.command_delay=3", "noise=none")
+    assert ours(cfg, dyn, TMAX).max_rate == pytest.approx(np.radians(45) / 0.03)   # 26 rad/s
+
+
+def test_max_rate_raises_r_by_the_fewest_rungs_that_keep_the_feedback_within_it():
+    """The planar copter with stiff gains (R 0.05) turns at 320 rad/s; held to 40 rad/s, R is
+    raised in x2 rungs to the first that keeps max |eig(B K)| within it, and lowered back once
+    the bound leaves room."""
+    dyn = PlanarCopter(True)
+    x, u = np.zeros(dyn.n), np.full(2, MASS * G / 2)
+    _, A, B = dyn.linearize(x, u)
+    free = RelinearizingLQR(dyn, weights(dyn), r=0.05, kp=1.0, kd=0.0, n=1, max_thrust=TMAX)
+    capped = RelinearizingLQR(dyn, weights(dyn), r=0.05, kp=1.0, kd=0.0, n=1, max_thrust=TMAX, max_rate=40.0)
+
+    def rate(K):
+        return np.abs(np.linalg.eigvals(B @ K)).max()
+    assert rate(free.gain(A, B)) > 300.0 and free.r_scale == 1.0
+    assert np.allclose(free.gain(A, B), care_gain(A, B, weights(dyn), 0.05))
+    K = capped.gain(A, B)
+    assert rate(K) <= 40.0 and capped.r_scale > 1.0
+    assert rate(care_gain(A, B, weights(dyn), 0.5 * capped.r_scale * 0.05)) > 40.0   # one rung fewer breaks it
+    capped.max_rate = 1e3                                      # room again: back to the configured R
+    capped.gain(A, B)
+    assert capped.r_scale == 1.0
