@@ -23,7 +23,7 @@ from sdexp.sensing.rotations import euler_rate_matrix, matrix_from_euler
 from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
 
-BEND_FORMAT = 4   # 2: the configs' key fields (sdexp.cache.config_key); 3: rotor thrust over its disc; 4: positive
+BEND_FORMAT = 3   # 2: the configs' key fields (sdexp.cache.config_key); 3: rotor thrust over its disc
 
 
 def rotation(e: np.ndarray, dim: int) -> np.ndarray:

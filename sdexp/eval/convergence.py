@@ -47,9 +47,8 @@ from sdexp.sensing import decompose
 from sdexp.sim.sensors import read_imus
 from sdexp.sim.rigid.statics import outer_rotors
 
-FORMAT = 10  # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields;
-             # 8-9: exact outlines, layers with r, the disc load, the balanced load's work, free-free frequencies;
-             # 10: the disc load positive (traction.load_faces)
+FORMAT = 9   # 6: the load from the design's rotor anchors and normals (fixed_load); 7: the drone's key fields;
+             # 8-9: exact outlines, layers with r, the disc load, the balanced load's work, free-free frequencies
 MODES = 8    # free-free frequencies compared
 DIRECT_MAX_DOFS = 500_000  # SuperLU's fill grows fast: the leaf's finest reference, 251k unknowns, takes
                            # 6 min and 3 GB (smoothed-aggregation AMG, tried, stalls on that thin plate)

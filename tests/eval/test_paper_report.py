@@ -103,7 +103,7 @@ def test_runs_flown_before_a_simulator_change_are_named(tmp_path):
     _sota_run(tmp_path / "sota_seeds" / "seed2", 2, True, 0.2, 0.5)
     (tmp_path / "sota" / "cli.log").write_text("[2026-11-25 07:00:00,000][sdexp][INFO] - sdexp: sota\n")
     (tmp_path / "sota_seeds" / "seed1" / "cli.log").write_text(f"[{last[0][:-2]}59,000][sdexp][INFO] - sdexp: sota\n")
-    (tmp_path / "sota_seeds" / "seed2" / "cli.log").write_text(f"[{last[0][:-2]}00,000][sdexp][INFO] - sdexp: sota\n")
+    (tmp_path / "sota_seeds" / "seed2" / "cli.log").write_text(f"[{first[0][:-2]}59,000][sdexp][INFO] - sdexp: sota\n")
 
     def lines():
         return [x for x in render(tmp_path).splitlines() if x.startswith("Flown before the simulator changed")]
