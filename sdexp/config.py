@@ -124,13 +124,11 @@ class SimConfig:
     max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
     threads: int = field(default=0, metadata=NOT_KEY)   # FEM kernel threads; 0 = auto (2 for big meshes)
     element: str = "quadratic"           # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
-    # elastic forces in float32 | float64 (positions and velocities stay float64; docs/speed.md:
-    # float32 stays within a flight's seed-to-seed spread); keyed only when not the default
-    precision: str = field(default="float32", metadata=UNLESS_DEFAULT)
+    # elastic forces in float64 | float32 (positions and velocities stay float64); keyed only when not float64
+    precision: str = field(default="float64", metadata=UNLESS_DEFAULT)
     # targeted inertial mass scaling: at most this fraction of the drone's mass added as inertia on
-    # the nodes of the modes that limit the stable step (gravity on the physical mass); 0 = off.
-    # 0.005 buys the flower's step x1.20 for +0.31% mass, its first eight frequencies -0.3 to -0.4%
-    mass_scaling: float = field(default=0.005, metadata=UNLESS_DEFAULT)
+    # the nodes of the modes that limit the stable step (gravity on the physical mass); 0 = off
+    mass_scaling: float = field(default=0.0, metadata=UNLESS_DEFAULT)
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.physics.effects), each {name|_target_, params}
 
 

@@ -43,9 +43,8 @@ from sdexp.errors import UserError
 log = logging.getLogger(__name__)
 
 
-FLOOR_FORMAT = 6   # 3: the configs' key fields (sdexp.cache.config_key); 4: the floor windows' flights kept;
-                   # 5: rotor thrust as a traction over its disc (sim.mesh.traction); 6: float32
-                   # forces and mass scaling 0.005 by default
+FLOOR_FORMAT = 5   # 3: the configs' key fields (sdexp.cache.config_key); 4: the floor windows' flights kept;
+                   # 5: rotor thrust as a traction over its disc (sim.mesh.traction)
 
 
 def steps_of(dcfg, dt: float, history: float) -> tuple[int, int, int]:

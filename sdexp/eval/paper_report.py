@@ -34,7 +34,6 @@ RESULTS = Path(__file__).resolve().parents[2] / "results"
 SIMULATOR_CHANGES = (
     ("2026-11-26 16:17:09", "71629c6", "each rotor's thrust a uniform traction over its disc (before: equal "
      "shares among the patch's vertices, 1-7 cm off the anchor; docs/physics.md)"),
-    ("2026-11-26 19:24:07", "5da9fdc", "float32 elastic forces and mass scaling 0.005 by default (docs/speed.md)"),
 )
 REPRODUCED, PARTLY, NOT, NOT_RUN = "reproduced", "partly", "not reproduced", "not run"
 

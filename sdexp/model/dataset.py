@@ -57,9 +57,8 @@ log = logging.getLogger(__name__)
 KEYS = ("s", "s_dot", "e", "e_dot", "p", "p_dot", "u", "s_dot_next", "e_dot_next", "p_dot_next",
         "raw", "raw_dot", "raw_dot_next", "episode", "t")
 
-DATA_FORMAT = 5  # 2: continuous bend angle s (sdexp.sensing); 3: the key from the configs' key fields;
-                 # 4: rotor thrust as a traction over its disc (sim.mesh.traction); 5: float32
-                 # forces and mass scaling 0.005 by default
+DATA_FORMAT = 4  # 2: continuous bend angle s (sdexp.sensing); 3: the key from the configs' key fields;
+                 # 4: rotor thrust as a traction over its disc (sim.mesh.traction)
 # transitions per chunk (at least one episode's length): small enough to balance two workers
 # and lose little to a kill, big enough that few episodes are cut at a chunk's end
 CHUNK_SAMPLES = 4000

@@ -130,12 +130,10 @@ def test_vector_envs_step_in_sync_and_in_processes(cache_dir):
 def test_ours_flies_in_the_env_as_fly_flies_it(cache_dir):
     """Noise off, so that both are deterministic: the env's episode under OursPolicy ends where
     sdexp's own flight loop (control.rollout.fly) ends the same task, to the float32 of the
-    observation. Float64 forces: the body then rests exactly, so the float32 observation of its
-    zeros is exact (float32 forces leave 1e-9 residuals whose rounding this tiny-data model's
-    controller amplifies to 0.1 N within three steps)."""
+    observation."""
     from sdexp.envs.policy import OursPolicy
     from sdexp.eval.flights import Setup
-    overrides = [*SHRUNK[1:], f"cache_dir={cache_dir}", "noise.enabled=false", "sim.precision=float64"]
+    overrides = [*SHRUNK[1:], f"cache_dir={cache_dir}", "noise.enabled=false"]
     env = gym.make("sdexp/Rod-Reach-v0", overrides=overrides, seconds=0.3, target=[1, 1])
     policy = OursPolicy(env, progress=False)
     obs, _ = env.reset(seed=0)

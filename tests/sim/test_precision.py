@@ -58,8 +58,7 @@ def test_float32_flight_stays_on_the_float64_one(rod):
     float32 forces keep every vertex within 1e-5 m and the IMU bends within 1e-3 deg of
     float64 (the rod bends by tens of degrees)."""
     noise = NoiseConfig(enabled=False)
-    sims = [Simulator(rod, SimConfig(precision=p, threads=1, mass_scaling=0.0), noise, 0)
-            for p in ("float64", "float32")]
+    sims = [Simulator(rod, SimConfig(precision=p, threads=1), noise, 0) for p in ("float64", "float32")]
     rng = np.random.default_rng(0)
     bend = 0.0
     for k in range(50):
@@ -110,7 +109,7 @@ def test_gravity_pulls_on_the_physical_mass():
 def test_a_budget_that_buys_nothing_runs_unscaled(rod, caplog, tmp_path):
     """A budget below the first rung's needs: a warning that says so, the unscaled step."""
     assert mass_scaling(rod.fem, 1e-9, tmp_path).added is None
-    plain = Simulator(rod, SimConfig(threads=1, mass_scaling=0.0), NoiseConfig(enabled=False), 0)
+    plain = Simulator(rod, SimConfig(threads=1), NoiseConfig(enabled=False), 0)
     with caplog.at_level(logging.WARNING):
         tiny = Simulator(rod, SimConfig(threads=1, mass_scaling=1e-9), NoiseConfig(enabled=False), 0)
     assert tiny.scaling.added is None and tiny.n_sub == plain.n_sub
@@ -118,9 +117,9 @@ def test_a_budget_that_buys_nothing_runs_unscaled(rod, caplog, tmp_path):
 
 
 def test_new_sim_keys_enter_cache_keys_only_when_set():
-    """sim.precision and sim.mass_scaling enter a cache key only away from their defaults (the
-    formats, DATA_FORMAT and the rest, mark when the defaults changed); set, they enter it."""
+    """Every artefact cached before sim.precision and sim.mass_scaling existed keeps its key at
+    their defaults; set, they enter it."""
     plain = config_key(SimConfig())
     assert "precision" not in plain and "mass_scaling" not in plain
-    assert config_key(SimConfig(precision="float64"))["precision"] == "float64"
-    assert config_key(SimConfig(mass_scaling=0.0))["mass_scaling"] == 0.0
+    assert config_key(SimConfig(precision="float32"))["precision"] == "float32"
+    assert config_key(SimConfig(mass_scaling=0.005))["mass_scaling"] == 0.005
