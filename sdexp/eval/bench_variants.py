@@ -36,8 +36,8 @@ REFERENCE = {"precision": "float64", "mass_scaling": 0.0}   # the yardstick ever
 
 
 def variants(budget: float) -> dict[str, dict]:
-    """The sim overrides of each variant (the first, float64 unscaled, is the reference; the
-    defaults are the last, float32 scaled)."""
+    """The sim overrides of each variant, each spelled out whatever the defaults (the first,
+    float64 unscaled, is the reference)."""
     return {"float64": REFERENCE, "float32": {"precision": "float32", "mass_scaling": 0.0},
             "float64 scaled": {"precision": "float64", "mass_scaling": budget},
             "float32 scaled": {"precision": "float32", "mass_scaling": budget}}
