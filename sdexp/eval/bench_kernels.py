@@ -61,7 +61,6 @@ def load_commit(commit: str, folder: Path):
 
 def _simulator(drone, precision: str, body_class, lib, threads: int = 1, **sim):
     simulator.Body = body_class   # the Simulator builds its body through this name
-    sim.setdefault("mass_scaling", 0.0)   # an older integrator may not take added mass
     try:
         s = simulator.Simulator(drone, SimConfig(threads=threads, precision=precision, **sim),
                                 NoiseConfig(enabled=False), 0)

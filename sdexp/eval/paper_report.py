@@ -417,20 +417,18 @@ def render(results: Path = RESULTS) -> str:
 
 
 def _before_changes(results: Path) -> list[str]:
-    """The counted runs flown before a simulator change, by experiment, each named under the
-    first change it missed (so it missed every later one too)."""
-    out, after = [], ""
+    """For each simulator change, the counted runs flown before it, by experiment."""
+    out = []
     for since, commit, what in SIMULATOR_CHANGES:
         before = {}
         for name in EXPERIMENTS + ("fleet",):
-            n = sum(1 for r in runs(results, name) if after <= (r.started or "") < since)
+            n = sum(1 for r in runs(results, name) if (r.started or "") < since)
             if n:
                 before[name] = n
         if before:
             out += ["", f"Flown before the simulator changed at {commit} ({since} UTC: {what}): "
                     + ", ".join(f"{name} ({n} run{'s' * (n != 1)})" for name, n in before.items())
                     + "; their rows stand at the simulator they ran on."]
-        after = since
     return out
 
 

@@ -9,8 +9,8 @@ refinement to the next; an IMU patch that shares vertices with a rotor patch the
 local indentation under a few nodal loads (the donut's bend +38% against its converged body,
 -6% under this load; docs/physics.md). This load converges with the mesh.
 
-Why not a positive load integrated over the faces' linear pieces (tried 2026-11-26, 58ca805~1
-and reverted): the consistent load pulls negatively on a clipped face's corners (up to 13.5% of a
+Why not a positive load integrated over the faces' linear pieces (tried 2026-11-26 in d22a22b,
+reverted in 5da9fdc): the consistent load pulls negatively on a clipped face's corners (up to 13.5% of a
 flower rotor's thrust, on light HRZ nodes), which a lumped positive load avoids, but the IMU
 bend the controller reads then converges worse: the engine's reference meshes (r = 1, 1.5, 2,
 3, 4 x finer) read 0.1002 / 0.1047 / 0.0907 / 0.0875 / 0.0929 deg under it against 0.1037 /
