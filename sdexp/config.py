@@ -152,6 +152,9 @@ class DataConfig:
     around_hover: bool = False      # true: each hold draws hover thrust + U[lo, hi] x Tmax (paper: false)
     hover: str = "rigid"            # that hover thrust: rigid (the rest shape's, weight spread evenly) |
                                     # shape (plus the no-lift pattern that keeps the body flattest, sim.statics)
+    # deg: each rotor's draw narrowed to the thrust that bends the body at most this much on its own
+    # (sdexp.model.generate.thrust_draw); null: every rotor draws the whole range (paper)
+    bend_budget_deg: Optional[float] = field(default=None, metadata=UNLESS_DEFAULT)
     deform_range: float = 0.0       # x Tmax: largest rotor offset of a held thrust pattern with no net
                                     # lift or tilting torque on the rest shape (it only deforms); 0: none (paper)
     deform_hold_seconds: float = 1.0  # such a pattern is redrawn this often
@@ -571,6 +574,8 @@ def _check_learning(a, m) -> None:
     check_range(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
     check_range(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
     check_range(a.region > 0, "data.region", a.region, "> 0 m")
+    check_range(a.bend_budget_deg is None or 0 < a.bend_budget_deg <= 180, "data.bend_budget_deg",
+                a.bend_budget_deg, "in (0, 180] deg, or null (no limit)")
     check_range(0 <= a.deform_range <= 1, "data.deform_range", a.deform_range, "in [0, 1] x max_thrust")
     check_range(a.deform_hold_seconds > 0, "data.deform_hold_seconds", a.deform_hold_seconds, "> 0 s")
     check_range(a.workers >= 1, "data.workers", a.workers, ">= 1")

@@ -152,7 +152,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     (X (T+1, n) decomposed states, U (T, m) commands, seed used). A flight that fails is
     retried with the next seed; the longest one is kept."""
     from sdexp.log import Phase
-    from sdexp.model.generate import commands, hover_centre
+    from sdexp.model.generate import commands, thrust_draw
     from sdexp.sim.drone import build_drone
     from sdexp.sensing import decompose
     from sdexp.sim.simulator import Simulator
@@ -161,10 +161,10 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     dt = float(cfg.sim.control_dt)
     steps = int(round(seconds / dt))
     best = None
-    centre = hover_centre(drone, cfg.data, cfg.sim)
+    draw = thrust_draw(drone, cfg.data, cfg.sim)
     for attempt in range(attempts):
         sim = Simulator(drone, cfg.sim, cfg.noise, seed + attempt)
-        cmds = commands(drone, cfg.data, centre, dt, np.random.default_rng(seed + attempt))
+        cmds = commands(drone, cfg.data, draw, dt, np.random.default_rng(seed + attempt))
         xs = [decompose(sim.reset(), drone.layout).x]
         us = []
         for _ in Phase(f"test flight {attempt}", total=steps, unit="steps").iterate(range(steps)):

@@ -109,23 +109,39 @@ def _deformation(rng: np.random.Generator, patterns: np.ndarray, largest: float)
     return rng.uniform(0.0, largest) * v / np.abs(v).max()
 
 
-def hover_centre(drone, data, sim_cfg) -> np.ndarray | float:
-    """The centre of the data recipe's thrust draw: 0 (the paper's), or with ``around_hover`` the
-    rest shape's hover thrust (``hover: rigid``) or the one that holds the body flattest
-    (``hover: shape``, sim.statics.shape_hover_thrust: a few seconds of simulation)."""
-    if not data.around_hover:
-        return 0.0
-    if data.hover == "shape":
-        from sdexp.sim.rigid.statics import shape_hover_thrust
-        return shape_hover_thrust(drone, sim_cfg)
-    return rest_hover_thrust(drone, float(sim_cfg.gravity))
+def thrust_draw(drone, data, sim_cfg) -> tuple[np.ndarray | float, np.ndarray | float]:
+    """(centre, scale) of the data recipe's thrust draw, each per rotor or one for all: every hold
+    draws ``centre + scale x U[lo, hi] x Tmax``. The centre is 0 (the paper's), or with
+    ``around_hover`` the rest shape's hover thrust (``hover: rigid``) or the one that holds the
+    body flattest (``hover: shape``, sim.rigid.statics.shape_hover_thrust: a few seconds of
+    simulation). The scale is 1, or with ``bend_budget_deg`` each rotor's draw narrowed to the
+    thrust that bends the body at most that much on its own (sim.rigid.statics.rotor_compliance
+    at the centre): a soft arm is excited as far as a stiff one bends, not as far as the rotors
+    reach (the octopus's arms bend 14.4 deg per N; with U[-3, 3] N the data's median bend is 32
+    deg and 1.5% of its transitions are within 3 deg of flat)."""
+    centre: np.ndarray | float = 0.0
+    if data.around_hover:
+        if data.hover == "shape":
+            from sdexp.sim.rigid.statics import shape_hover_thrust
+            centre = shape_hover_thrust(drone, sim_cfg)
+        else:
+            centre = rest_hover_thrust(drone, float(sim_cfg.gravity))
+    if data.bend_budget_deg is None or drone.layout.n_s == 0:
+        return centre, 1.0
+    from sdexp.sim.rigid.statics import rotor_compliance
+    reach = float(drone.max_thrust) * max(abs(f) for f in data.thrust_range)   # N: the widest draw
+    compliance = rotor_compliance(drone, sim_cfg, np.broadcast_to(centre, (drone.num_rotors,)).astype(float))
+    budget = np.radians(float(data.bend_budget_deg))
+    return centre, np.minimum(1.0, budget / np.maximum(compliance * reach, 1e-12))
 
 
-def commands(drone, data, centre: np.ndarray | float, dt: float, rng: np.random.Generator) -> Iterator[np.ndarray]:
+def commands(drone, data, draw: tuple[np.ndarray | float, np.ndarray | float], dt: float,
+             rng: np.random.Generator) -> Iterator[np.ndarray]:
     """The data recipe's command at every control step of one episode (``data``: the data config;
-    ``centre``: hover_centre's): per rotor ``centre`` + U[lo, hi] x Tmax held
-    ``hold_seconds``, plus a deformation pattern held ``deform_hold_seconds`` if
+    ``draw``: thrust_draw's (centre, scale)): per rotor ``centre`` + ``scale`` x U[lo, hi] x Tmax
+    held ``hold_seconds``, plus a deformation pattern held ``deform_hold_seconds`` if
     ``deform_range`` > 0. Validates eagerly; yields forever."""
+    centre, scale = draw
     tmax, m = drone.max_thrust, drone.num_rotors
     hold = max(1, int(round(data.hold_seconds / dt)))
     lo, hi = (tmax * f for f in data.thrust_range)
@@ -144,7 +160,7 @@ def commands(drone, data, centre: np.ndarray | float, dt: float, rng: np.random.
             if deform > 0 and k % deform_hold == 0:
                 offset = _deformation(rng, patterns, deform)
             if k % hold == 0:
-                u = centre + offset + rng.uniform(lo, hi, m)
+                u = centre + offset + scale * rng.uniform(lo, hi, m)
             yield u
             k += 1
     return stream()
@@ -156,7 +172,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     float32 arrays (``episode`` local to the chunk), and a summary of how the episodes ended."""
     t_start, cpu_start = time.perf_counter(), time.process_time()
     drone, sim = _simulator(spec)
-    centre = spec["centre"] if "centre" in spec else hover_centre(drone, spec["data"], sim_config(spec))
+    draw = spec["draw"] if "draw" in spec else thrust_draw(drone, spec["data"], sim_config(spec))
     data = spec["data"]
     dt = float(spec["sim"].control_dt)
     rows = _Rows(n, widths(drone.layout.dim, drone.layout.n_s, drone.num_rotors), progress)
@@ -164,7 +180,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     ep, empty = 0, 0
     while rows.i < n:
         ss_thrust, ss_noise = np.random.SeedSequence(spec["seed"], spawn_key=(chunk, ep)).spawn(2)
-        cmds = commands(drone, data, centre, dt, np.random.default_rng(ss_thrust))
+        cmds = commands(drone, data, draw, dt, np.random.default_rng(ss_thrust))
         sim.rng = np.random.default_rng(ss_noise)
         start = rows.i
         ends[_episode(sim, drone.layout, cmds, rows, ep, dt, max(1, int(round(data.episode_seconds / dt))),

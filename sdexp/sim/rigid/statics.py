@@ -86,6 +86,17 @@ def deform_reach(drone, sim_cfg, seconds: float = 2.0) -> float:
     return float(np.rad2deg(best))
 
 
+def rotor_compliance(drone, sim_cfg, u: np.ndarray, seconds: float = 1.0, step: float = 0.5) -> np.ndarray:
+    """How far each rotor alone bends the body: per rotor, the largest change of any bend (rad per
+    N) after holding ``u`` plus ``step`` N on that rotor for ``seconds`` from rest, against ``u``
+    alone, noise-free. One second lets most bodies settle (the octopus's arms: 14.4 deg/N at
+    0.5 s and at 1 s; the flower's petals 8.0 and 8.8); the rod's ends and the orange peel's
+    petals keep bending (25 -> 42 and 26 -> 56 deg/N), so there it is a lower bound."""
+    s0 = hold(drone, sim_cfg, u, seconds)
+    return np.array([np.abs(hold(drone, sim_cfg, u + step * np.eye(len(u))[i], seconds) - s0).max() / step
+                     for i in range(len(u))])
+
+
 def shape_hover_thrust(drone, sim_cfg, seconds: float = 2.0, iterations: int = 3, step: float = 0.1) -> np.ndarray:
     """The rest-shape hover thrust plus the deformation pattern that keeps the bends smallest
     after ``seconds`` of holding it (Gauss-Newton on s over the pattern coefficients, finite
