@@ -76,6 +76,7 @@ def rejected(*overrides) -> str:
     ("noise.delay=-0.01", "noise.delay", ">= 0"),
     ("model.lr=inf", "model.lr", "lr > 0"),
     ("data.region=nan", "data.region", "> 0 m"),
+    ("data.bend_budget_deg=0", "data.bend_budget_deg", "in (0, 180] deg, or null"),
     ("seed=-1", "seed", "0 to 4294967295"),
     ("seed=4294967296", "seed", "0 to 4294967295"),
     ("drone.mesh.edge_length=5", "drone.mesh.edge_length", "in [0.0435, 0.9] m"),

@@ -138,7 +138,9 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
     and the drop (m) after holding that thrust ``hold_seconds`` open loop, noise-free, the rank of
     the rotors' wrench on lift and tilt (3 in 3D, 2 in 2D: what hovering level needs) and in
     all, the thrust patterns left to deform the body and the largest bend one of them holds while
-    the body stays level (``statics.deform_reach``), and the nets' validation error (mean
+    the body stays level (``statics.deform_reach``), the largest bend after holding instead the
+    thrust that keeps the body flattest (``statics.shape_hover_thrust``: whether any thrust the
+    rotors can give without lifting or tilting holds the body open), and the nets' validation error (mean
     absolute error of the predicted velocity change over that of copying the velocity: 1 = no
     better than "no change")."""
     from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
@@ -158,12 +160,24 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
            "hover_hold_blew_up": not sane,
            "lift_tilt_rank": int(np.linalg.matrix_rank(W[level])), "lift_tilt_needed": len(level),
            "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1]),
-           "deform_reach_deg": deform_reach(drone, sim_cfg, hold_seconds)}
+           "deform_reach_deg": deform_reach(drone, sim_cfg, hold_seconds),
+           **shape_hover_fold(drone, sim_cfg, hold_seconds)}
     if trained is not None:
         for name, h in trained.history.items():
             kept = h[h["selected"]] if "selected" in h and h["selected"].any() else h.tail(1)
             out[f"{name}_val_rel_l1"] = float(kept["val_rel_l1"].iloc[0])
     return out
+
+
+def shape_hover_fold(drone, sim_cfg, hold_seconds: float = 2.0) -> dict:
+    """The largest bend (deg) after holding the shape-holding hover thrust ``hold_seconds`` open
+    loop, noise-free, and whether the hold blew up: what is left of the fold when the rotors'
+    thrust is spread to keep the body flat rather than evenly (the leaf: 63 deg evenly, 6 shaped)."""
+    from sdexp.sim.rigid.statics import hold_state, shape_hover_thrust
+
+    _, st, sane = hold_state(drone, sim_cfg, shape_hover_thrust(drone, sim_cfg), hold_seconds)
+    return {"shape_hover_fold_deg": float(np.rad2deg(np.abs(st.s)).max()) if st.s.size else 0.0,
+            "shape_hover_blew_up": not sane}
 
 
 def model_at_hover(setup) -> dict:
@@ -361,20 +375,23 @@ def _invocations(out_dir: Path, wall: float, jobs_run: int) -> list[dict]:
 
 def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> None:
     """Jobs written before a diagnostic joined the physics (``model_at_hover`` and its data fit,
-    ``deform_reach_deg``; resumed runs) get it from their cached drone, data and nets, written back
+    ``deform_reach_deg``, ``shape_hover_fold_deg``; resumed runs) get it from their cached drone, data and nets, written back
     to the job's file; nothing is flown again."""
     from sdexp.eval.flights import Setup
     from sdexp.sim.rigid.statics import deform_reach
 
     for (name, seed), res in results.items():
         phys = res["physics"]
-        if phys is None or ("data_torque_map_ratio_acting" in phys and "deform_reach_deg" in phys):
+        if phys is None or all(k in phys for k in ("data_torque_map_ratio_acting", "deform_reach_deg",
+                                                    "shape_hover_fold_deg")):
             continue
         setup = Setup(job_config(cfg, name, seed, p), progress=False)
         if "data_torque_map_ratio_acting" not in phys:
             phys.update(model_at_hover(setup))
         if "deform_reach_deg" not in phys:
             phys["deform_reach_deg"] = deform_reach(setup.drone, setup.cfg.sim)
+        if "shape_hover_fold_deg" not in phys:
+            phys.update(shape_hover_fold(setup.drone, setup.cfg.sim))
         write_job(job_path(jobs_dir, name, seed), res)
 
 

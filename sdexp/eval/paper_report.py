@@ -328,7 +328,10 @@ def _physics_cells(physics, drone: str) -> list[str]:
     ph = physics.loc[drone] if drone in physics.index else None
     if ph is None or "thrust_to_weight" not in ph or pd.isna(ph["thrust_to_weight"]):
         return ["-"] * 5
-    return [f"{ph['thrust_to_weight']:.1f}", f"{ph['hover_fold_deg']:.1f}", f"{ph.get('deform_reach_deg', float('nan')):.1f}",
+    fold = f"{ph['hover_fold_deg']:.1f}"
+    if not pd.isna(ph.get("shape_hover_fold_deg", float("nan"))):
+        fold += f" / {ph['shape_hover_fold_deg']:.1f}"
+    return [f"{ph['thrust_to_weight']:.1f}", fold, f"{ph.get('deform_reach_deg', float('nan')):.1f}",
             " / ".join(f"{ph.get(f'{n}_val_rel_l1', float('nan')):.2f}" for n in "dgh"),
             f"{ph.get('model_accel_at_hover', float('nan')):.1f}"]
 
@@ -359,7 +362,8 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
              "median error of those (hover, reach: final position error; velocity: velocity error rms; deform: bend "
              "rms), and the rigid LQR's survivors. **Bold**: flies (every seed survives, median within the task's "
              "tolerance). Physics of each body, apart from any controller: thrust-to-weight, the fold the rigid hover "
-             "thrust holds open loop (2 s), the largest bend one thrust pattern without net lift or tilt holds (its reach: "
+             "thrust holds open loop (2 s) and, after the slash, the fold the thrust that keeps the body flattest holds "
+             "(where measured), the largest bend one thrust pattern without net lift or tilt holds (its reach: "
              "the deform task asks 15 deg); the learned model: the nets' validation error against copying the velocity "
              "(d / g / h), and at release under hover thrust, where the truth is no acceleration, the linear "
              "acceleration it predicts (m/s^2, mean over seeds).\n",

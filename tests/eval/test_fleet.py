@@ -46,9 +46,11 @@ def test_an_interrupted_fleet_resumes_with_the_jobs_it_has(tmp_path, cache_dir):
     rod = tmp_path / "jobs" / "rod_seed0.json"           # and the rod's written before deform_reach_deg
     job = json.loads(rod.read_text())
     reach = job["physics"].pop("deform_reach_deg")
+    shaped = job["physics"].pop("shape_hover_fold_deg")
     rod.write_text(json.dumps(job))
     again = run_experiment(reduced(cache_dir), tmp_path)
-    assert json.loads(rod.read_text())["physics"]["deform_reach_deg"] == pytest.approx(reach)   # filled, kept
+    filled = json.loads(rod.read_text())["physics"]
+    assert filled["deform_reach_deg"] == pytest.approx(reach) and filled["shape_hover_fold_deg"] == pytest.approx(shaped)
     assert first["jobs_run"] == 2 and again["jobs_run"] == 1
     assert again["invocations"] == 2 and again["wall_seconds"] > first["wall_seconds"]   # both calls' wall time
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "fleet.csv"), before)   # flights repeat bit for bit
@@ -151,6 +153,16 @@ def test_physics_of_a_body_its_thrust_to_weight_and_a_fold_inverse_in_the_modulu
     assert stiff["hover_fold_deg"] == pytest.approx(soft["hover_fold_deg"] / 2, rel=0.15)
     assert 0 < soft["deform_reach_deg"] < 15      # the deform task's 15 deg is out of the engine's reach
     assert stiff["deform_reach_deg"] == pytest.approx(soft["deform_reach_deg"] / 2, rel=0.15)
+    assert soft["shape_hover_fold_deg"] < 1 and not soft["shape_hover_blew_up"]
+
+
+def test_the_shape_holding_thrust_leaves_the_rod_a_fraction_of_its_even_fold(cache_dir):
+    """The rod's ends carry less mass per rotor than its middle: the even hover thrust curls them,
+    the shape-holding one (statics.shape_hover_thrust) keeps them far flatter."""
+    from sdexp.sim.drone import build_drone
+    cfg = make_config("drone=rod")
+    phys = fleet.physics_of(build_drone(cfg.drone, cache_dir, "quadratic"), cfg.sim, hold_seconds=1.0)
+    assert phys["hover_fold_deg"] > 30 and phys["shape_hover_fold_deg"] < phys["hover_fold_deg"] / 3
 
 
 @pytest.mark.parametrize("override, words", [

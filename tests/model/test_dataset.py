@@ -271,6 +271,28 @@ def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
     assert dataset_key(dataset_spec(rigid, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 
 
+def test_bend_budget_narrows_each_rotor_to_what_bends_the_body_that_much(tmp_path):
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.rigid.statics import rotor_compliance
+
+    over = ["data=near_hover", "data.samples=400", "data.thrust_range=[-0.3,0.3]"]
+    cfg = small_config(str(tmp_path), *over, "data.bend_budget_deg=5")
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
+    centre, scale = generate.thrust_draw(drone, cfg.data, cfg.sim)
+    reach = 0.3 * float(cfg.drone.max_thrust)
+    compliance = rotor_compliance(drone, cfg.sim, centre)
+    # the budget binds on the soft rotors and only there: scale x reach x compliance = 5 deg, else scale 1
+    assert np.all(scale <= 1.0) and scale.min() < 0.5
+    np.testing.assert_allclose(np.where(scale < 1, np.degrees(scale * reach * compliance), 5.0), 5.0, rtol=1e-9)
+    assert np.all(np.degrees(reach * compliance[scale == 1]) <= 5.0)
+    u = load_dataset(cfg, CHUNK).arrays["u"]
+    assert np.all(np.abs(u - centre) <= scale * reach + 1e-5)
+    assert np.all(np.abs(u - centre).max(axis=0) > 0.3 * scale * reach)   # each rotor spans its own range (8 draws)
+    free = small_config(str(tmp_path), *over)
+    assert free.data.bend_budget_deg is None and generate.thrust_draw(drone, free.data, free.sim)[1] == 1.0
+    assert dataset_key(dataset_spec(free, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
+
+
 def test_obstacles_are_scenery_not_part_of_the_data(reference):
     cfg, _ = reference
     boxed = small_config(cfg.cache_dir, "sim.obstacles=[{min:[3,-6],max:[4,6]}]")
