@@ -29,7 +29,8 @@ def test_a_reduced_fleet_flies_every_task_and_matches_its_reference(tmp_path, ca
     assert {"survived", "failure", "final_error", "velocity_error_rms", "max_tilt_deg", "bend_rms_deg"} <= set(table)
     physics = pd.read_csv(tmp_path / "physics.csv")
     assert list(physics["drone"]) == ["rod", "engine"] and (physics["d_val_rel_l1"] > 0).all()
-    assert (physics[["model_accel_at_hover", "model_tilt_accel_at_hover", "model_torque_map_error"]] >= 0).all().all()
+    assert (physics[["model_accel_at_hover", "model_tilt_accel_at_hover", "model_torque_map_error",
+                     "model_accel_error_at_release", "model_tilt_accel_error_at_release"]] >= 0).all().all()
     assert (physics[["data_torque_map_error_sent", "data_torque_map_error_acting", "data_level_transitions"]] >= 0).all().all()
     assert (tmp_path / "fleet.png").exists() and m["jobs"] == 2 and m["jobs_failed"] == 0
     assert m["wall_seconds"] > 0
