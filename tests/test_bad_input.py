@@ -224,6 +224,13 @@ def test_a_finished_run_is_skipped_only_with_the_same_resolved_config(tmp_path):
                                         r"6000\.0 there, 3000\.0 here\)"):
         run_experiment(other, tmp_path / "run")
     assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()} == before
+    # neither an option added since (absent there, off here) nor the worker count is another config
+    from sdexp.eval.run import config_differences
+    saved = {"control": {"r": 10.0}, "experiment": {"params": {"workers": 1}}}
+    assert config_differences(saved, {"control": {"r": 10.0, "delay_phase_deg": None},
+                                      "experiment": {"params": {"workers": 2}}}) == []
+    assert config_differences(saved, {"control": {"r": 10.0, "delay_phase_deg": 45.0}}) == [
+        "control.delay_phase_deg: '<absent>' there, 45.0 here"]
     # an interrupted run (config.yaml, no metrics.json) resumes only with its own config
     (tmp_path / "run" / "metrics.json").unlink()
     with pytest.raises(UserError, match="unfinished run with another config"):

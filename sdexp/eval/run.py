@@ -226,8 +226,10 @@ def _flat(node: Any, prefix: str = "") -> dict:
 # (experiment._target_: where its code is)
 # (sweep_dir: what a report reads is compared as experiment.params.sweep_dir; animate: whether
 # a flight is also drawn, its numbers are the same bit for bit)
+# how a result is computed or shown, not what it is: worker counts (data and fleet jobs are the
+# same whichever process makes them), caches, the pictures
 NOT_COMPARED = ("cache_dir", "cores", "sweep_dir", "experiment._target_", "experiment.params.animate",
-                "experiment.params.paraview")
+                "experiment.params.paraview", "experiment.params.workers", "data.workers")
 
 
 def config_differences(saved: dict, current: dict) -> list[str]:
@@ -236,6 +238,8 @@ def config_differences(saved: dict, current: dict) -> list[str]:
     out = []
     for key in sorted(set(a) | set(b)):
         if key in NOT_COMPARED:
+            continue
+        if key not in a and b[key] is None:   # an option added since, at its off value
             continue
         if a.get(key, "<absent>") != b.get(key, "<absent>"):
             out.append(f"{key}: {a.get(key, '<absent>')!r} there, {b.get(key, '<absent>')!r} here")

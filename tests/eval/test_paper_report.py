@@ -79,6 +79,11 @@ def test_the_fleet_verdict_counts_the_drone_task_pairs_that_fly(tmp_path):
     verdict, row = _fleet_verdict(tmp_path)
     assert verdict == "not reproduced" and "1 of 3 drone-task pairs fly" in row
     assert "| star | 1/2, 0.05 (rigid 0/2) |" in render(tmp_path)
+    assert "The fleet's wall time: 1.0 h on 2 cores" in render(tmp_path)
+    # a later call that flew nothing (diagnostics filled in from the caches) is counted apart
+    calls = [{"wall_seconds": 3000.0, "jobs_run": 3}, {"wall_seconds": 600.0, "jobs_run": 0}]
+    (tmp_path / "fleet" / "invocations.json").write_text(json.dumps(calls))
+    assert "wall time: 0.8 h (and 10 min of diagnostics filled in later from the caches)" in render(tmp_path)
 
 
 def test_the_fleet_through_a_low_pass_is_counted_beside_it(tmp_path):
