@@ -386,8 +386,12 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
             flies[(drone, task)], text = _fleet_cell(table, drone, task, seeds)
             row.append(text)
         lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(_physics_cells(physics, drone)) + " |")
+    jobs, job_time = pd.read_csv(folder / "physics.csv"), ""
+    if {"learning_seconds", "flights_seconds"} <= set(jobs.columns):
+        job_time = (f"; job time {jobs['learning_seconds'].sum() / 3600:.1f} h learning (data and nets; "
+                    f"near 0 when they came from the caches), {jobs['flights_seconds'].sum() / 3600:.1f} h flying")
     lines += ["", f"The fleet's wall time: {_fleet_hours(folder, rs[0].metrics)} "
-              "on 2 cores. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
+              f"on 2 cores{job_time}. Why each drone that does not fly fails: docs/results.md, \"The fleet\".", ""]
     lines += _lowpass_line(results, table, seeds, rs[0])
     n_fly = sum(flies.values())
     per_task = ", ".join(f"{t} {sum(flies[(d, t)] for d in drones)}" for t in tasks)
