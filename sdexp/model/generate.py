@@ -118,7 +118,8 @@ def thrust_draw(drone, data, sim_cfg) -> tuple[np.ndarray | float, np.ndarray | 
     thrust that bends the body at most that much on its own (sim.rigid.statics.rotor_compliance
     at the centre): a soft arm is excited as far as a stiff one bends, not as far as the rotors
     reach (the octopus's arms bend 14.4 deg per N; with U[-3, 3] N the data's median bend is 32
-    deg and 1.5% of its transitions are within 3 deg of flat)."""
+    deg, with a 20 deg budget 15). Off by default: on the octopus, rod, leaf and orange peel it
+    narrowed the data as meant and flew nothing more (docs/results.md, "The fleet")."""
     centre: np.ndarray | float = 0.0
     if data.around_hover:
         if data.hover == "shape":
