@@ -193,6 +193,7 @@ def model_at_hover(setup, steps: int = 10) -> dict:
     difference over the rigid map's): the truth only where the body hardly bends (a fold of a
     degree or less under hover thrust, ``physics_of``), a reference elsewhere."""
     from sdexp.sim.rigid.geometry import rest_hover_thrust, rigid_body
+    from sdexp.sim.rigid.statics import hold_trace
 
     drone, dyn = setup.drone, setup.dyn
     fem = drone.fem
@@ -200,12 +201,13 @@ def model_at_hover(setup, steps: int = 10) -> dict:
     hover = rest_hover_thrust(drone, float(setup.cfg.sim.gravity))
     f, _, B = dyn.linearize(setup.simulator().state(noisy=False).x, hover)
     sl = dyn.slices
-    xs = _release(setup, hover, steps)
     dt = float(setup.cfg.sim.control_dt)
-    rates = [np.arange(dyn.n)[sl[k]] for k in ("p_dot", "e_dot")]
-    err = np.mean([dyn.f(x, hover)[np.r_[tuple(rates)]] - (x_next - x)[np.r_[tuple(rates)]] / dt
-                   for x, x_next in zip(xs[:-1], xs[1:])], axis=0)
-    n_p = len(rates[0])
+    states, _ = hold_trace(drone, setup.cfg.sim, hover, steps * dt)
+    xs = [st.x for st in states]
+    p_dot, e_dot = (np.arange(dyn.n)[sl[k]] for k in ("p_dot", "e_dot"))
+    rates = np.concatenate([p_dot, e_dot])
+    err = np.mean([dyn.f(x, hover)[rates] - (x_next - x)[rates] / dt for x, x_next in zip(xs[:-1], xs[1:])], axis=0)
+    n_p = len(p_dot)
     if fem.dim == 3:
         rigid = np.linalg.solve(inertia, np.cross(pos, dirs).T)
         level = [0, 2]    # roll and pitch; yaw (e_y, about the up axis) has no truth to hold to
@@ -219,20 +221,6 @@ def model_at_hover(setup, steps: int = 10) -> dict:
             "model_torque_map_error": float(np.linalg.norm(B[sl["e_dot"]] - rigid) / np.linalg.norm(rigid)),
             **data_torque_map(setup.data.arrays, rigid, level, float(setup.cfg.sim.control_dt),
                               int(setup.cfg.model.command_delay))}
-
-
-def _release(setup, u: np.ndarray, steps: int) -> np.ndarray:
-    """The decomposed states of ``steps`` control steps from rest under thrust ``u``, noise-free and
-    with no output delay (the thrust the model is asked about acts at once)."""
-    from sdexp.config import NoiseConfig
-    from sdexp.sensing import decompose
-    from sdexp.sim.simulator import Simulator
-
-    sim = Simulator(setup.drone, replace(setup.cfg.sim, obstacles=[]), NoiseConfig(enabled=False), seed=0)
-    xs = [decompose(sim.reset(), setup.drone.layout).x]
-    for _ in range(steps):
-        xs.append(decompose(sim.step(u), setup.drone.layout).x)
-    return np.array(xs)
 
 
 def data_torque_map(arrays: dict, rigid: np.ndarray, level: list[int], dt: float, delay: int,

@@ -362,7 +362,8 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
         if not (folder / name).is_file():
             raise UserError(f"{folder / name} is missing: {committed.FIX}")
     table = pd.read_csv(folder / "fleet.csv")
-    physics = pd.read_csv(folder / "physics.csv").groupby("drone", sort=False).mean(numeric_only=True)
+    jobs = pd.read_csv(folder / "physics.csv")
+    physics = jobs.groupby("drone", sort=False).mean(numeric_only=True)
     params = config["experiment"]["params"]
     tasks, seeds = list(params["tasks"]), len(params["seeds"])
     drones = list(dict.fromkeys(table["drone"]))
@@ -386,7 +387,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
             flies[(drone, task)], text = _fleet_cell(table, drone, task, seeds)
             row.append(text)
         lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(_physics_cells(physics, drone)) + " |")
-    jobs, job_time = pd.read_csv(folder / "physics.csv"), ""
+    job_time = ""
     if {"learning_seconds", "flights_seconds"} <= set(jobs.columns):
         job_time = (f"; job time {jobs['learning_seconds'].sum() / 3600:.1f} h learning (data and nets; "
                     f"near 0 when they came from the caches), {jobs['flights_seconds'].sum() / 3600:.1f} h flying")

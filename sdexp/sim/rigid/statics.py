@@ -30,17 +30,24 @@ def outer_rotors(drone, along_z: bool = False) -> np.ndarray:
     return mask
 
 
+def hold_trace(drone, sim_cfg, u: np.ndarray, seconds: float) -> tuple[list, bool]:
+    """(the decomposed state at release and after every control step of holding thrust ``u`` for
+    ``seconds`` from rest, whether the simulation stayed sane), noise-free, no output delay; a
+    hold that fails ends at the step that failed."""
+    sim = Simulator(drone, replace(sim_cfg, obstacles=[]), NoiseConfig(enabled=False), seed=0)
+    states = [decompose(sim.reset(), drone.layout)]
+    for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
+        states.append(decompose(sim.step(u), drone.layout))
+        if not sim.alive:
+            break
+    return states, sim.alive
+
+
 def hold_state(drone, sim_cfg, u: np.ndarray, seconds: float):
     """(decomposed state at release, after holding thrust ``u`` for ``seconds`` from rest, whether
     the simulation stayed sane), noise-free."""
-    sim = Simulator(drone, replace(sim_cfg, obstacles=[]), NoiseConfig(enabled=False), seed=0)
-    r = sim.reset()
-    first = decompose(r, drone.layout)
-    for _ in range(int(round(seconds / float(sim_cfg.control_dt)))):
-        r = sim.step(u)
-        if not sim.alive:
-            break
-    return first, decompose(r, drone.layout), sim.alive
+    states, sane = hold_trace(drone, sim_cfg, u, seconds)
+    return states[0], states[-1], sane
 
 
 def hold(drone, sim_cfg, u: np.ndarray, seconds: float) -> np.ndarray:
