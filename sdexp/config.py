@@ -233,6 +233,10 @@ class ControlConfig:
     # non-zero target: the star's folding wings), q_s_alike x (s_a - s_b)^2 per pair; 0: the
     # paper's diagonal Q. control/lqr.py alike_weights
     q_s_alike: float = 0.0
+    # ours: R's weight on thrust differences among the rotors that drive those bends (each bend's
+    # rotor read from the learned model's B), r_alike x r x (u_a - u_b)^2 per pair; their common
+    # thrust costs r as before; 0: the paper's diagonal R. control/lqr.py alike_thrust_weights
+    r_alike: float = 0.0
     # s: every controller reads the decomposed state through a first-order low-pass of this time
     # constant, so that the rate feedback stops pumping a soft elastic mode the IMUs sit on (the
     # rainbow's 5 Hz mode, control/lowpass.py); 0: the state as read (the paper)
@@ -612,6 +616,7 @@ def _check_control(cfg) -> None:
     check_range(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
     check_range(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
     check_range(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
+    check_range(c.r_alike >= 0, "control.r_alike", c.r_alike, ">= 0 (0: the paper's diagonal R)")
     check_range(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
     check_range(c.delay_phase_deg is None or 0 < c.delay_phase_deg <= 180, "control.delay_phase_deg",
                 c.delay_phase_deg, "in (0, 180] deg or null")

@@ -186,8 +186,36 @@ def alike_weights(sizes: dict[str, int], groups, q: float, velocity_scale: float
     n_s, n = int(sizes["n_s"]), state_length(sizes)
     W = np.zeros((n, n))
     for members in groups:
-        k = len(members)
-        L = q * (k * np.eye(k) - np.ones((k, k)))   # the group's graph Laplacian: sum of (s_a - s_b)^2
+        L = q * _laplacian(len(members))
         W[np.ix_(members, members)] += L
         W[np.ix_(n_s + members, n_s + members)] += velocity_scale * L
+    return W
+
+
+def _laplacian(k: int) -> np.ndarray:
+    """The complete graph's Laplacian on k members: v @ L @ v = sum over pairs of (v_a - v_b)^2."""
+    return k * np.eye(k) - np.ones((k, k))
+
+
+def alike_rotors(B_bend_rates: np.ndarray, groups) -> list[np.ndarray]:
+    """Per group of bends moved together, the rotors that drive them: for each bend the rotor whose
+    thrust accelerates it most (the largest |d s_ddot / d u| in the learned model's B), a group
+    kept where two or more distinct rotors remain. Read from the model, not from the mesh, so it
+    holds for any drone the learning side sees."""
+    out = []
+    for members in groups:
+        rotors = np.unique(np.argmax(np.abs(B_bend_rates[members]), axis=1))
+        if len(rotors) > 1:
+            out.append(rotors)
+    return out
+
+
+def alike_thrust_weights(m: int, rotor_groups, r: float) -> np.ndarray:
+    """R's term r * sum over each group's pairs of (u_a - u_b)^2, (m, m): thrust differences among
+    the rotors of bends asked to move together cost extra, their common thrust does not. Not in the
+    paper: on the folded star one thrust difference drives roll, the Z push and the wings' parting
+    at once (docs/results.md, "Obstacle"); this prices that input instead of its outcome (alike_weights)."""
+    W = np.zeros((m, m))
+    for rotors in rotor_groups:
+        W[np.ix_(rotors, rotors)] += r * _laplacian(len(rotors))
     return W

@@ -63,7 +63,7 @@ from collections import deque
 
 import numpy as np
 
-from sdexp.control.lqr import alike_groups, alike_weights, lqr_gain
+from sdexp.control.lqr import alike_groups, alike_rotors, alike_thrust_weights, alike_weights, lqr_gain
 from sdexp.control.tasks import Task, wrap_angle
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.sensing import State
@@ -79,7 +79,7 @@ class RelinearizingLQR:
                  max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None,
                  dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None,
                  regulated: np.ndarray | None = None, q_alike: float = 0.0, velocity_scale: float = 1.0,
-                 max_rate: float | None = None):
+                 max_rate: float | None = None, r_alike: float = 0.0):
         if n < 1:
             raise ValueError("n must be >= 1")
         if feedforward and not relinearize:
@@ -94,10 +94,14 @@ class RelinearizingLQR:
         if self.regulated is not None:
             self._rates = np.intersect1d(self._rates, self.regulated)
         self.dyn, self.kp, self.kd, self.n, self.max_thrust = dyn, kp, kd, int(n), max_thrust
-        self.Q0, self.R = np.diag(q_diag), r * np.eye(dyn.m)
-        self.Q = self.Q0
+        self.Q0, self.R0 = np.diag(q_diag), r * np.eye(dyn.m)
+        self.Q, self.R = self.Q0, self.R0
         # Q's cost of bends the task moves together parting (lqr.alike_weights; 0: the paper's diagonal)
         self.q_alike, self.velocity_scale = float(q_alike), float(velocity_scale)
+        # R's cost of thrust differences among those bends' rotors, x r (lqr.alike_thrust_weights)
+        if not r_alike >= 0:
+            raise ValueError(f"r_alike = {r_alike!r}: allowed >= 0")
+        self.r_alike = float(r_alike) * float(r)
         self.relinearize = relinearize
         self.dt = dt   # None: continuous Riccati (the paper); a step: the sampled-data gain
         self.x_op, self.u_op = x_op, u_op
@@ -118,10 +122,12 @@ class RelinearizingLQR:
         self.task, self.k = task, 0
         self.r_scale = 1.0
         self.timings = []
-        self.Q = self.Q0
+        self.Q, self.R = self.Q0, self.R0
+        self.groups = alike_groups(task.bend_targets)
+        self.rotor_groups = None   # from the first linearisation's B (alike_rotors)
         if self.q_alike > 0:
             sizes = {"n_s": self.dyn.n_s, "n_e": self.dyn.n_e, "dim": self.dyn.dim}
-            self.Q = self.Q0 + alike_weights(sizes, alike_groups(task.bend_targets), self.q_alike, self.velocity_scale)
+            self.Q = self.Q0 + alike_weights(sizes, self.groups, self.q_alike, self.velocity_scale)
         self.u = self.u0.copy()
         self.u_oper = self.u.copy()
         self.u_ff = None
@@ -137,6 +143,9 @@ class RelinearizingLQR:
         """The LQR gain on (A, B); with ``max_rate``, R raised (or lowered back toward the
         configured R) in x2 rungs until the feedback's fastest rate, max |eig(B K)|, is within it.
         Warm-started from the last rung, so a relinearisation usually solves once or twice."""
+        if self.r_alike > 0 and self.rotor_groups is None:
+            self.rotor_groups = alike_rotors(B[self.dyn.slices["s_dot"]], self.groups)
+            self.R = self.R0 + alike_thrust_weights(self.dyn.m, self.rotor_groups, self.r_alike)
         K = lqr_gain(A, B, self.Q, self.r_scale * self.R, self.dt, self.regulated)
         if self.max_rate is None:
             return K

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from sdexp.control.lqr import (LqrFailure, alike_groups, alike_weights, controllable_basis, lqr_gain,
+from sdexp.control.lqr import (LqrFailure, alike_groups, alike_rotors, alike_thrust_weights, alike_weights, controllable_basis, lqr_gain,
                                regulated_states, state_weights)
 
 DOUBLE_INTEGRATOR = (np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]))
@@ -287,3 +287,34 @@ def test_the_alike_weight_stiffens_the_differential_bend_mode_alone(q, q_alike, 
     for mode, weight in ((c, q), (d, q + 2 * q_alike)):
         gain = mode @ K @ np.kron(np.eye(2), mode[:, None])     # (angle, rate) gain of that mode
         np.testing.assert_allclose(gain, analytic_double_integrator_gain(weight, weight, r)[0], rtol=1e-8)
+
+
+def test_alike_rotors_are_each_bends_strongest_rotor_and_need_two():
+    B = np.array([[0.1, 2.0, 0.0, 0.3],     # bend 0: rotor 1
+                  [0.0, 0.1, -0.2, 0.0],    # bend 1: rotor 2 (the magnitude counts)
+                  [0.5, 0.0, 0.0, 0.1],     # bend 2: rotor 0
+                  [0.0, 0.0, 0.0, 1.0]])    # bend 3: rotor 3
+    groups = alike_rotors(B, [np.array([0, 2]), np.array([1, 3]), np.array([0, 0])])
+    assert [g.tolist() for g in groups] == [[0, 1], [2, 3]]   # bends 0 and 0 share one rotor: no group
+
+
+def test_alike_thrust_weights_cost_thrust_differences_and_not_the_common_thrust():
+    W = alike_thrust_weights(5, [np.array([1, 3, 4])], 2.5)
+    u = np.random.default_rng(1).normal(size=5)
+    pairs = [(1, 3), (1, 4), (3, 4)]
+    assert u @ W @ u == pytest.approx(2.5 * sum((u[i] - u[j]) ** 2 for i, j in pairs), rel=1e-12)
+    assert np.allclose(W @ np.array([0, 1, 0, 1, 1.0]), 0) and np.all(W[0] == 0) and np.all(W[2] == 0)
+
+
+@pytest.mark.parametrize("q, r, r_alike", [(100.0, 10.0, 3.0), (1.0, 0.5, 0.2)])
+def test_the_alike_thrust_weight_softens_the_differential_input_mode_alone(q, r, r_alike):
+    # two bends, each a double integrator with its own input: the common mode keeps the gain of R = r,
+    # the differential one gets that of r + 2 r_alike r (r_alike r (u1 - u2)^2 = 2 r_alike r d^2)
+    A = np.block([[np.zeros((2, 2)), np.eye(2)], [np.zeros((2, 4))]])
+    B = np.vstack([np.zeros((2, 2)), np.eye(2)])
+    R = r * np.eye(2) + alike_thrust_weights(2, [np.array([0, 1])], r_alike * r)
+    K = lqr_gain(A, B, q * np.eye(4), R)
+    c, d = np.array([1.0, 1.0]) / np.sqrt(2), np.array([1.0, -1.0]) / np.sqrt(2)
+    for mode, weight in ((c, r), (d, r + 2 * r_alike * r)):
+        gain = mode @ K @ np.kron(np.eye(2), mode[:, None])
+        np.testing.assert_allclose(gain, analytic_double_integrator_gain(q, q, weight)[0], rtol=1e-8)

@@ -426,6 +426,39 @@ def test_ours_weighs_the_parting_of_the_bends_a_task_moves_together(q_alike):
     np.testing.assert_array_equal(ctl.Q, diagonal)
 
 
+class TwoWingCopter(PlanarCopter):
+    """The planar copter with two bends, each raised by its own rotor's thrust."""
+
+    def __init__(self):
+        super().__init__(True, n_s=2)
+
+    def f(self, x, u):
+        out = super().f(x, u)
+        sl, u = self.slices, np.asarray(u, float)
+        out[sl["s_dot"]] = -16.0 * x[sl["s"]] - 4.0 * x[sl["s_dot"]] + 0.5 * u
+        return out
+
+
+def test_ours_prices_thrust_differences_between_the_rotors_of_bends_moved_together():
+    from sdexp.control.lqr import alike_thrust_weights
+    from sdexp.eval.controllers import ours
+    from tests.conftest import make_config
+    cfg = make_config("control.r_alike=4", "control.r=2", "noise=none")
+    dyn = TwoWingCopter()
+    ctl = ours(cfg, dyn, TMAX)
+    hover = np.full(2, MASS * G / 2)
+    x = np.zeros(dyn.n)
+    ctl.reset(Task(start=np.zeros(2), target=np.zeros(2), seconds=1.0, n_s=2, bend_times=[0.0, 0.5],
+                   bend_targets=[[0.0, 0.0], [0.3, 0.3]]))
+    ctl.u = hover.copy()
+    ctl.act(0.0, state_of(dyn, x))
+    assert [g.tolist() for g in ctl.rotor_groups] == [[0, 1]]
+    np.testing.assert_allclose(ctl.R, 2 * np.eye(2) + alike_thrust_weights(2, [np.array([0, 1])], 8.0))
+    ctl.reset(Task(start=np.zeros(2), target=np.zeros(2), seconds=1.0, n_s=2))   # no bends moved together
+    ctl.act(0.0, state_of(dyn, x))
+    assert ctl.rotor_groups == [] and np.array_equal(ctl.R, 2 * np.eye(2))
+
+
 def test_ours_bounds_its_feedback_rate_by_the_phase_over_the_command_delay():
     from sdexp.eval.controllers import ours
     from tests.conftest import make_config
