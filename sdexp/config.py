@@ -237,6 +237,10 @@ class ControlConfig:
     # rotor read from the learned model's B), r_alike x r x (u_a - u_b)^2 per pair; their common
     # thrust costs r as before; 0: the paper's diagonal R. control/lqr.py alike_thrust_weights
     r_alike: float = 0.0
+    # ours: each relinearisation moves the operating thrust this fraction of the way toward an even
+    # share of its total, within the thrust directions the learned rigid motion does not feel; 0:
+    # Algorithm 1 as written (the operating thrust is the last command). control/relinearizing.py
+    share_pull: float = 0.0
     # s: every controller reads the decomposed state through a first-order low-pass of this time
     # constant, so that the rate feedback stops pumping a soft elastic mode the IMUs sit on (the
     # rainbow's 5 Hz mode, control/lowpass.py); 0: the state as read (the paper)
@@ -617,6 +621,9 @@ def _check_control(cfg) -> None:
     check_range(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
     check_range(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
     check_range(c.r_alike >= 0, "control.r_alike", c.r_alike, ">= 0 (0: the paper's diagonal R)")
+    check_range(0 <= c.share_pull <= 1, "control.share_pull", c.share_pull, "0 to 1 (0: Algorithm 1 as written)")
+    check_range(c.share_pull == 0 or not c.feedforward, "control.share_pull", c.share_pull,
+                "0 while control.feedforward is on (the feed-forward sets the operating thrust itself)")
     check_range(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
     check_range(c.delay_phase_deg is None or 0 < c.delay_phase_deg <= 180, "control.delay_phase_deg",
                 c.delay_phase_deg, "in (0, 180] deg or null")

@@ -52,6 +52,13 @@ sets max_rate = phase / (command delay x dt)). Measured at release with R = 10 (
 octopus's feedback acts at 44 rad/s (76 deg of phase over 30 ms), the flower's at 16, the star's
 19, the rod's 20, the stiff drones' 4-6.
 
+``share_pull`` (our extension, 0 by default; a fraction per relinearisation): Algorithm 1 keeps
+the thrust it reached as the next operating point, so thrust combinations the attitude and the
+position hardly feel wander freely, and on the SOTA flower they drift onto the centre rotor (seed 0:
+6.6 of 9.3 N, two petals pushing down, until it saturates and the flight is lost). With it, each
+relinearisation moves u_oper this fraction of the way toward an even share of the total, within the
+null space of the rigid rows of B (``unfelt_share``), so no attitude or position acceleration moves.
+
 ``regulated`` (our extension; None: every state, the paper): the indices of x the LQR regulates,
 the others get no gain and no feed-forward row (sdexp.control.lqr.regulated_states: the bends
 whose spread in the training data is sensor noise).
@@ -79,17 +86,23 @@ class RelinearizingLQR:
                  max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None,
                  dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None,
                  regulated: np.ndarray | None = None, q_alike: float = 0.0, velocity_scale: float = 1.0,
-                 max_rate: float | None = None, r_alike: float = 0.0):
+                 max_rate: float | None = None, r_alike: float = 0.0, share_pull: float = 0.0):
         if n < 1:
             raise ValueError("n must be >= 1")
         if feedforward and not relinearize:
             raise ValueError("feedforward needs relinearize=True (it re-solves at every relinearisation)")
         self.feedforward = feedforward
+        if not 0 <= share_pull <= 1:
+            raise ValueError(f"share_pull = {share_pull!r}: allowed 0 to 1")
+        if share_pull > 0 and feedforward:
+            raise ValueError("share_pull needs feedforward=False (the feed-forward sets the operating thrust itself)")
+        self.share_pull = float(share_pull)
         if waypoint_max is not None and not waypoint_max > 0:
             raise ValueError(f"waypoint_max = {waypoint_max!r}: allowed > 0 or None")
         self.waypoint_max = waypoint_max
         # the velocity rows of f: zero at rest, what equilibrium_thrust solves for
         self._rates = np.concatenate([np.arange(dyn.n)[dyn.slices[k]] for k in ("s_dot", "e_dot", "p_dot")])
+        self._rigid = np.concatenate([np.arange(dyn.n)[dyn.slices[k]] for k in ("e_dot", "p_dot")])
         self.regulated = None if regulated is None else np.asarray(regulated, dtype=int)
         if self.regulated is not None:
             self._rates = np.intersect1d(self._rates, self.regulated)
@@ -183,6 +196,8 @@ class RelinearizingLQR:
                 self.K = self.gain(A, B)
                 self.timings.append(time.perf_counter() - t0)
                 self.u_oper = self.u.copy()
+                if self.share_pull > 0:
+                    self.u_oper += self.share_pull * unfelt_share(B[self._rigid], self.u)
             else:
                 x_dot = self.dyn.f(x, self.u)
             goal = self.task.goal(t).x
@@ -205,3 +220,13 @@ class RelinearizingLQR:
             self.sent.append(self.u.copy())
             self.sent.popleft()
         return self.u
+
+
+def unfelt_share(B_rigid: np.ndarray, u: np.ndarray, rcond: float = 1e-6) -> np.ndarray:
+    """The step from u toward an even share of its total thrust, within the thrust directions the
+    rigid rows of the learned model do not feel (the null space of B_rigid): it moves no attitude
+    or position acceleration to first order (nor the total, where the lift row feels it)."""
+    _, S, Vt = np.linalg.svd(B_rigid, full_matrices=True)
+    rank = int(np.sum(S > rcond * S[0])) if len(S) and S[0] > 0 else 0
+    N = Vt[rank:].T
+    return N @ (N.T @ (np.full_like(u, u.mean()) - u))

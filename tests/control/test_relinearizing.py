@@ -459,6 +459,26 @@ def test_ours_prices_thrust_differences_between_the_rotors_of_bends_moved_togeth
     assert ctl.rotor_groups == [] and np.array_equal(ctl.R, 2 * np.eye(2))
 
 
+@pytest.mark.parametrize("pull", [0.0, 0.25])
+def test_share_pull_moves_the_operating_thrust_toward_an_even_share_only_where_the_rigid_motion_cannot_feel_it(pull):
+    """The bending trirotor's rigid rows feel u1 - u0 (turn) and the total (lift); the one thrust
+    direction they do not feel is (1, 1, -2). From u = (3, 3, 9) the even share (5, 5, 5) differs
+    by (2, 2, -4), all of it in that direction: u_oper moves pull x (2, 2, -4)."""
+    from sdexp.control.relinearizing import unfelt_share
+    dyn = BendingTrirotor()
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=1.0, kd=0.0, n=5, max_thrust=TMAX, share_pull=pull)
+    ctl.reset(Task(start=np.zeros(2), target=np.zeros(2), seconds=1.0, n_s=1))
+    ctl.u = np.array([3.0, 3.0, 9.0])
+    ctl.act(0.0, state_of(dyn, np.zeros(dyn.n)))
+    np.testing.assert_allclose(ctl.u_oper, [3 + 2 * pull, 3 + 2 * pull, 9 - 4 * pull], atol=1e-6)
+    _, _, B = dyn.linearize(np.zeros(dyn.n), ctl.u_oper)
+    rigid = np.r_[dyn.slices["e_dot"], dyn.slices["p_dot"]]
+    step = unfelt_share(B[rigid], np.array([1.0, 4.0, 1.0]))   # uneven in a felt direction too
+    np.testing.assert_allclose(B[rigid] @ step, 0, atol=1e-6)
+    with pytest.raises(ValueError, match="share_pull"):
+        RelinearizingLQR(dyn, weights(dyn), 2.0, 1.0, 0.0, 5, TMAX, feedforward=True, share_pull=0.2)
+
+
 def test_ours_bounds_its_feedback_rate_by_the_phase_over_the_command_delay():
     from sdexp.eval.controllers import ours
     from tests.conftest import make_config
