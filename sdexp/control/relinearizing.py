@@ -136,7 +136,8 @@ class RelinearizingLQR:
         self.r_scale = 1.0
         self.timings = []
         self.Q, self.R = self.Q0, self.R0
-        self.groups = alike_groups(task.bend_targets)
+        # only where asked: a task that moves no bends (an env's observed goal) has no bend_targets
+        self.groups = alike_groups(task.bend_targets) if self.q_alike > 0 or self.r_alike > 0 else []
         self.rotor_groups = None   # from the first linearisation's B (alike_rotors)
         if self.q_alike > 0:
             sizes = {"n_s": self.dyn.n_s, "n_e": self.dyn.n_e, "dim": self.dyn.dim}
