@@ -114,7 +114,7 @@ class RelinearizingLQR:
         # R's cost of thrust differences among those bends' rotors, x r (lqr.alike_thrust_weights)
         if not r_alike >= 0:
             raise ValueError(f"r_alike = {r_alike!r}: allowed >= 0")
-        self.r_alike = float(r_alike) * float(r)
+        self.r_alike_cost = float(r_alike) * float(r)
         self.relinearize = relinearize
         self.dt = dt   # None: continuous Riccati (the paper); a step: the sampled-data gain
         self.x_op, self.u_op = x_op, u_op
@@ -137,7 +137,7 @@ class RelinearizingLQR:
         self.timings = []
         self.Q, self.R = self.Q0, self.R0
         # only where asked: a task that moves no bends (an env's observed goal) has no bend_targets
-        self.groups = alike_groups(task.bend_targets) if self.q_alike > 0 or self.r_alike > 0 else []
+        self.groups = alike_groups(task.bend_targets) if self.q_alike > 0 or self.r_alike_cost > 0 else []
         self.rotor_groups = None   # from the first linearisation's B (alike_rotors)
         if self.q_alike > 0:
             sizes = {"n_s": self.dyn.n_s, "n_e": self.dyn.n_e, "dim": self.dyn.dim}
@@ -157,9 +157,9 @@ class RelinearizingLQR:
         """The LQR gain on (A, B); with ``max_rate``, R raised (or lowered back toward the
         configured R) in x2 rungs until the feedback's fastest rate, max |eig(B K)|, is within it.
         Warm-started from the last rung, so a relinearisation usually solves once or twice."""
-        if self.r_alike > 0 and self.rotor_groups is None:
+        if self.r_alike_cost > 0 and self.rotor_groups is None:
             self.rotor_groups = alike_rotors(B[self.dyn.slices["s_dot"]], self.groups)
-            self.R = self.R0 + alike_thrust_weights(self.dyn.m, self.rotor_groups, self.r_alike)
+            self.R = self.R0 + alike_thrust_weights(self.dyn.m, self.rotor_groups, self.r_alike_cost)
         K = lqr_gain(A, B, self.Q, self.r_scale * self.R, self.dt, self.regulated)
         if self.max_rate is None:
             return K
@@ -227,7 +227,8 @@ def unfelt_share(B_rigid: np.ndarray, u: np.ndarray, rcond: float = 1e-6) -> np.
     """The step from u toward an even share of its total thrust, within the thrust directions the
     rigid rows of the learned model do not feel (the null space of B_rigid): it moves no attitude
     or position acceleration to first order (nor the total, where the lift row feels it)."""
+    # numpy's SVD, not scipy.linalg.null_space (the same projection through another LAPACK): the
+    # committed SOTA flights were made with it, and scipy's moves their last digits
     _, S, Vt = np.linalg.svd(B_rigid, full_matrices=True)
-    rank = int(np.sum(S > rcond * S[0])) if len(S) and S[0] > 0 else 0
-    N = Vt[rank:].T
+    N = Vt[int(np.sum(S > rcond * S.max())) if S.size else 0:].T
     return N @ (N.T @ (np.full_like(u, u.mean()) - u))
