@@ -241,6 +241,10 @@ class ControlConfig:
     # share of its total, within the thrust directions the learned rigid motion does not feel; 0:
     # Algorithm 1 as written (the operating thrust is the last command). control/relinearizing.py
     share_pull: float = 0.0
+    # ours: the share of the feedback's last correction the operating thrust keeps at each
+    # relinearisation (with feedforward: the share the integral part keeps); 1: Algorithm 1 as
+    # written, whose integral then acts within one period n. control/relinearizing.py
+    integral: float = 1.0
     # s: every controller reads the decomposed state through a first-order low-pass of this time
     # constant, so that the rate feedback stops pumping a soft elastic mode the IMUs sit on (the
     # rainbow's 5 Hz mode, control/lowpass.py); 0: the state as read (the paper)
@@ -624,6 +628,7 @@ def _check_control(cfg) -> None:
     check_range(0 <= c.share_pull <= 1, "control.share_pull", c.share_pull, "0 to 1 (0: Algorithm 1 as written)")
     check_range(c.share_pull == 0 or not c.feedforward, "control.share_pull", c.share_pull,
                 "0 while control.feedforward is on (the feed-forward sets the operating thrust itself)")
+    check_range(0 < c.integral <= 1, "control.integral", c.integral, "in (0, 1] (1: Algorithm 1 as written)")
     check_range(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
     check_range(c.delay_phase_deg is None or 0 < c.delay_phase_deg <= 180, "control.delay_phase_deg",
                 c.delay_phase_deg, "in (0, 180] deg or null")

@@ -59,6 +59,15 @@ position hardly feel wander freely, and on the SOTA flower they drift onto the c
 relinearisation moves u_oper this fraction of the way toward an even share of the total, within the
 null space of the rigid rows of B (``unfelt_share``), so no attitude or position acceleration moves.
 
+``integral`` (our extension, 1 by default = Algorithm 1): u_oper <- u makes the operating thrust
+an integral of the feedback, and with the waypoint at the goal (kp = 1) it adds all of
+-K (x - x_goal) every period: an integral acting within n dt (0.1 s), which costs the fastest
+loop (attitude) phase it cannot spare beside the 30 ms lag. With ``integral`` < 1 the operating
+thrust (with ``feedforward``: its integral part) keeps that share of what the feedback added,
+u_oper <- u_oper + integral (u - u_oper): the same feedback, a slower integral, the same zero
+steady-state error. hover_deform flies with 0.5 (docs/results.md, "Hover with active deformation":
+the ~2 Hz attitude swing that took seed 0 to 8 deg is the symptom).
+
 ``regulated`` (our extension; None: every state, the paper): the indices of x the LQR regulates,
 the others get no gain and no feed-forward row (sdexp.control.lqr.regulated_states: the bends
 whose spread in the training data is sensor noise).
@@ -86,7 +95,8 @@ class RelinearizingLQR:
                  max_thrust: float, relinearize: bool = True, x_op=None, u_op=None, u0=None,
                  dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None,
                  regulated: np.ndarray | None = None, q_alike: float = 0.0, velocity_scale: float = 1.0,
-                 max_rate: float | None = None, r_alike: float = 0.0, share_pull: float = 0.0):
+                 max_rate: float | None = None, r_alike: float = 0.0, share_pull: float = 0.0,
+                 integral: float = 1.0):
         if n < 1:
             raise ValueError("n must be >= 1")
         if feedforward and not relinearize:
@@ -97,6 +107,9 @@ class RelinearizingLQR:
         if share_pull > 0 and feedforward:
             raise ValueError("share_pull needs feedforward=False (the feed-forward sets the operating thrust itself)")
         self.share_pull = float(share_pull)
+        if not 0 < integral <= 1:
+            raise ValueError(f"integral = {integral!r}: allowed in (0, 1]")
+        self.integral = float(integral)
         if waypoint_max is not None and not waypoint_max > 0:
             raise ValueError(f"waypoint_max = {waypoint_max!r}: allowed > 0 or None")
         self.waypoint_max = waypoint_max
@@ -145,6 +158,7 @@ class RelinearizingLQR:
         self.u = self.u0.copy()
         self.u_oper = self.u.copy()
         self.u_ff = None
+        self.u_int = np.zeros(self.dyn.m)   # with feedforward: the integral part of u_oper
         self.sent = deque([np.zeros(self.dyn.m)] * getattr(self.dyn, "delay", 0))   # sent, not yet acting (oldest first)
         if not self.relinearize:
             if self.x_op is None or self.u_op is None:
@@ -178,6 +192,11 @@ class RelinearizingLQR:
             K = lqr_gain(A, B, self.Q, self.r_scale * self.R, self.dt, self.regulated)
         return K
 
+    def _keep(self, before: np.ndarray, now: np.ndarray) -> np.ndarray:
+        """The operating thrust (or its integral part) for the next period: Algorithm 1 keeps all
+        of the last command (``integral`` 1), less keeps that share of what the feedback added."""
+        return now if self.integral == 1 else before + self.integral * (now - before)
+
     def equilibrium_thrust(self, x: np.ndarray, u: np.ndarray, steps: int = 2) -> np.ndarray:
         """The thrust (within +-Tmax) closest to holding state x at rest under the learned model:
         Gauss-Newton from u on the velocity rows of f(x, u) = 0 (least squares)."""
@@ -196,9 +215,9 @@ class RelinearizingLQR:
                 x_dot, A, B = self.dyn.linearize(x, self.u)
                 self.K = self.gain(A, B)
                 self.timings.append(time.perf_counter() - t0)
-                self.u_oper = self.u.copy()
+                self.u_oper = self._keep(self.u_oper, self.u.copy())
                 if self.share_pull > 0:
-                    self.u_oper += self.share_pull * unfelt_share(B[self._rigid], self.u)
+                    self.u_oper += self.share_pull * unfelt_share(B[self._rigid], self.u_oper)
             else:
                 x_dot = self.dyn.f(x, self.u)
             goal = self.task.goal(t).x
@@ -210,9 +229,9 @@ class RelinearizingLQR:
                     offset[p] *= self.waypoint_max / length
             self.x_wp = x + offset + self.kd * x_dot
             if self.feedforward:
-                u_int = np.zeros_like(self.u) if self.u_ff is None else self.u - self.u_ff
+                u_int = np.zeros_like(self.u) if self.u_ff is None else self._keep(self.u_int, self.u - self.u_ff)
                 self.u_ff = self.equilibrium_thrust(goal, self.u if self.u_ff is None else self.u_ff)
-                self.u_oper = self.u_ff + u_int
+                self.u_oper, self.u_int = self.u_ff + u_int, u_int
                 for key in ("s", "s_dot"):
                     self.x_wp[self.dyn.slices[key]] = goal[self.dyn.slices[key]]
         self.k += 1

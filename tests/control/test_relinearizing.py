@@ -292,6 +292,39 @@ def test_feedforward_holds_a_bend_target_with_a_spare_rotor():
         RelinearizingLQR(dyn, weights(dyn), 2.0, 1.0, 0.0, 5, TMAX, relinearize=False, feedforward=True)
 
 
+@pytest.mark.parametrize("feedforward", [False, True], ids=["algorithm1", "feedforward"])
+def test_integral_keeps_that_share_of_what_the_feedback_added_and_still_removes_the_offset(feedforward):
+    """At a relinearisation the operating thrust (with the feed-forward: its integral part, beside
+    the re-solved u_ff) keeps ``integral`` of what the feedback added over the period before;
+    Algorithm 1 keeps all of it. Less is a slower integral, not a weaker one: the bending
+    trirotor still settles on its goal with the analytic holding thrust."""
+    dyn, n, ki = BendingTrirotor(), 5, 0.25
+    s_goal = 0.1 if feedforward else 0.0
+    task = Task(start=np.zeros(2), target=np.zeros(2), seconds=20.0, n_s=1, bend_times=[0.0], bend_targets=[[s_goal]])
+    ctl = RelinearizingLQR(dyn, weights(dyn), r=2.0, kp=1.0, kd=0.0, n=n, max_thrust=TMAX, feedforward=feedforward,
+                           integral=ki, u0=np.full(3, MASS * G / 3))
+    ctl.reset(task)
+    x = np.zeros(dyn.n)
+    x[dyn.slices["p"]] = [0.05, -0.1]
+    for k in range(n):
+        u = ctl.act(k * DT, state_of(dyn, x))
+    before = (ctl.u_int if feedforward else ctl.u_oper).copy()
+    added = u - (ctl.u_ff if feedforward else ctl.u_oper)   # the last command, less what it started from
+    ctl.act(n * DT, state_of(dyn, x))
+    kept = before + ki * (added - before) if feedforward else before + ki * added
+    np.testing.assert_allclose(ctl.u_int if feedforward else ctl.u_oper, kept, atol=1e-9)
+    if feedforward:
+        np.testing.assert_allclose(ctl.u_oper, ctl.u_ff + ctl.u_int, atol=1e-12)
+    ctl.reset(task)
+    X, U = fly(dyn, ctl, np.zeros(dyn.n), 20.0)
+    a = (MASS * G + 16 * s_goal) / 3
+    assert abs(X[-1, dyn.slices["s"]][0] - s_goal) < 1e-3 and np.abs(X[-1, dyn.slices["p"]]).max() < 1e-2
+    np.testing.assert_allclose(U[-1], [a, a, a - 16 * s_goal], atol=0.02)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="integral"):
+            RelinearizingLQR(dyn, weights(dyn), 2.0, 1.0, 0.0, 5, TMAX, integral=bad)
+
+
 def test_waypoint_max_bounds_the_position_offset_of_the_waypoint_and_nothing_else():
     """A goal 10 m away with kp = 1: the waypoint is 0.5 m toward it; the bends' and rates' parts
     of the waypoint are kp's as before; a near goal is not touched."""
