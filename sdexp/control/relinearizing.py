@@ -65,8 +65,8 @@ an integral of the feedback, and with the waypoint at the goal (kp = 1) it adds 
 loop (attitude) phase it cannot spare beside the 30 ms lag. With ``integral`` < 1 the operating
 thrust (with ``feedforward``: its integral part) keeps that share of what the feedback added,
 u_oper <- u_oper + integral (u - u_oper): the same feedback, a slower integral, the same zero
-steady-state error. hover_deform flies with 0.5 (docs/results.md, "Hover with active deformation":
-the ~2 Hz attitude swing that took seed 0 to 8 deg is the symptom).
+steady-state error. hover_deform and the obstacle fly with 0.5 (docs/results.md, "Hover with active
+deformation": the ~2 Hz attitude swing that took seed 0 to 8 deg is the symptom).
 
 ``regulated`` (our extension; None: every state, the paper): the indices of x the LQR regulates,
 the others get no gain and no feed-forward row (sdexp.control.lqr.regulated_states: the bends
