@@ -184,6 +184,10 @@ class ModelConfig:
     # learned torque map: docs/learned_dynamics.md), and ours predicts the state over the lag with
     # the commands already sent (control/relinearizing.py). 0: the paper's model
     command_delay: int = field(default=0, metadata=UNLESS_DEFAULT)
+    # d, g and h each the mean of this many nets, trained alike from different seeds (member 0 from
+    # the run's seed: the nets of ensemble 1; sdexp.model.identification). One net's errors that
+    # depend on its initialisation and its held-out split average out; 1: one net each (the paper)
+    ensemble: int = field(default=1, metadata=UNLESS_DEFAULT)
     threads: int = field(default=2, metadata=NOT_KEY)   # torch threads: >= 2 trains d, g, h side by side, one thread each
 
 
@@ -604,6 +608,7 @@ def _check_learning(a, m) -> None:
     check_range(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
     check_range(m.horizon >= 1, "model.horizon", m.horizon, ">= 1 frame")
     check_range(0 <= m.command_delay <= 100, "model.command_delay", m.command_delay, "0 to 100 control steps")
+    check_range(1 <= m.ensemble <= 32, "model.ensemble", m.ensemble, "1 to 32 nets per network")
 
 
 def _check_control(cfg) -> None:

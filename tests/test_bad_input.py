@@ -69,6 +69,7 @@ def rejected(*overrides) -> str:
     ("control.share_pull=2", "control.share_pull", "0 to 1"),
     ("control.share_pull=0.2 control.feedforward=true", "control.share_pull", "feedforward"),
     ("control.integral=0", "control.integral", "in (0, 1]"),
+    ("model.ensemble=0", "model.ensemble", "1 to 32"),
     ("control.lowpass=-0.01", "control.lowpass", "in [0, 1] s"),
     ("control.delay_phase_deg=0", "control.delay_phase_deg", "in (0, 180] deg"),
     ("control.delay_phase_deg=45", "control.delay_phase_deg", "null while model.command_delay is 0"),

@@ -23,7 +23,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from sdexp.model.networks import ResidualMLP
+from sdexp.model.networks import EnsembleMLP, ResidualMLP
 from sdexp.model.specs import DECOMPOSED, NetSpec
 
 # which state block holds each network's target velocity
@@ -77,6 +77,21 @@ class _MlpJacobian:
         return y, J
 
 
+class _MeanJacobian:
+    """An EnsembleMLP's value and input Jacobian: the mean of its members'."""
+
+    def __init__(self, net: EnsembleMLP):
+        self.members = [_MlpJacobian(m) for m in net.members]
+
+    def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ys, Js = zip(*(jac(z) for jac in self.members))
+        return np.mean(ys, axis=0), np.mean(Js, axis=0)
+
+
+def _jacobian(net):
+    return _MeanJacobian(net) if isinstance(net, EnsembleMLP) else _MlpJacobian(net)
+
+
 def state_sizes(data) -> dict[str, int]:
     """n_s, n_e, dim, m from a dataset's arrays."""
     a = data.arrays if hasattr(data, "arrays") else data
@@ -100,7 +115,7 @@ class _one_thread:
 
 
 class LearnedDynamics:
-    def __init__(self, nets: Mapping[str, ResidualMLP], n_s: int, n_e: int, dim: int, m: int,
+    def __init__(self, nets: Mapping[str, ResidualMLP | EnsembleMLP], n_s: int, n_e: int, dim: int, m: int,
                  alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64,
                  dt: float | None = None, delay: int = 0, bend_spread=None):
         """``alpha``: the time between a network's input and its target (model.horizon frames);
@@ -138,7 +153,7 @@ class LearnedDynamics:
                 raise ValueError(f"network {spec.name!r} is {net.n_in} -> {net.n_out}, the state needs "
                                  f"{len(cols)} -> {width}")
             self.parts.append((block, net, torch.as_tensor(cols, dtype=torch.long), cols))
-        self._jac = [_MlpJacobian(net) for _, net, _, _ in self.parts]
+        self._jac = [_jacobian(net) for _, net, _, _ in self.parts]
 
     @classmethod
     def from_trained(cls, trained, data, dt: float, horizon: int = 1, delay: int = 0) -> "LearnedDynamics":

@@ -4,17 +4,23 @@ d, g, h networks trained on them (sdexp.model.training) and their LearnedDynamic
 tests or flies the learned model starts from."""
 from __future__ import annotations
 
+import dataclasses
+
 from sdexp.model.dataset import Dataset, load_dataset
 from sdexp.model.dynamics import LearnedDynamics
 from sdexp.model.specs import DECOMPOSED
-from sdexp.model.training import TrainedNets, train_models
+from sdexp.model.training import TrainedNets, ensemble, member_seed, train_models
 
 
 def identify(cfg, progress: bool = True) -> tuple[Dataset, TrainedNets, LearnedDynamics]:
-    """(dataset, trained d/g/h, LearnedDynamics) for ``cfg`` (the typed config)."""
+    """(dataset, trained d/g/h, LearnedDynamics) for ``cfg`` (the typed config). With
+    ``model.ensemble`` K > 1, each net is the mean of K trained from member seeds, each member
+    cached as the nets of ensemble 1 at its seed."""
     data = load_dataset(cfg)
-    trained = train_models(data, cfg.model, int(cfg.seed), cfg.cache_dir, float(cfg.data.validation_fraction),
-                           DECOMPOSED, progress)
+    one = dataclasses.replace(cfg.model, ensemble=1)
+    trained = ensemble([train_models(data, one, member_seed(cfg.seed, k), cfg.cache_dir,
+                                     float(cfg.data.validation_fraction), DECOMPOSED, progress)
+                        for k in range(int(cfg.model.ensemble))])
     dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon),
                                        int(cfg.model.command_delay))
     return data, trained, dyn

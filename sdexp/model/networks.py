@@ -109,3 +109,20 @@ class ResidualMLP(nn.Module):
         net = cls(**spec)
         net.load_state_dict(state)
         return net.eval()
+
+
+class EnsembleMLP(nn.Module):
+    """The mean of ResidualMLPs that read and predict the same channels (``model.ensemble``):
+    each trained alike from its own seed, so what one net got from its initialisation and its
+    held-out split averages out. Used wherever one ResidualMLP is (forward, n_in, n_out)."""
+
+    def __init__(self, members: Sequence[ResidualMLP]):
+        super().__init__()
+        members = list(members)
+        if not members or len({(m.n_in, m.n_out) for m in members}) != 1:
+            raise ValueError("EnsembleMLP needs one or more nets of the same shape")
+        self.members = nn.ModuleList(members)
+        self.n_in, self.n_out = members[0].n_in, members[0].n_out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([m(x) for m in self.members]).mean(0)

@@ -50,7 +50,7 @@ import torch
 from sdexp.cache import atomic_write, build_lock, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
-from sdexp.model.networks import ResidualMLP
+from sdexp.model.networks import EnsembleMLP, ResidualMLP
 from sdexp.model.specs import DECOMPOSED, NetSpec
 
 log = logging.getLogger(__name__)
@@ -69,6 +69,25 @@ class TrainedNets:
     specs: tuple[NetSpec, ...] = DECOMPOSED
     skipped: list[str] = field(default_factory=list)  # specs with an empty target (no sensors)
     wall_seconds: float = 0.0          # training wall time of the whole set (networks may overlap)
+
+
+def member_seed(seed: int, k: int) -> int:
+    """The training seed of ensemble member ``k`` (``model.ensemble``): member 0 trains from the
+    run's seed (its nets are those of ensemble 1, from the same cache), the others from seeds
+    drawn from (seed, k), far from any seed a user runs."""
+    return int(seed) if k == 0 else int(np.random.SeedSequence([int(seed), int(k)]).generate_state(1)[0]) + 2 ** 32
+
+
+def ensemble(members: Sequence[TrainedNets]) -> TrainedNets:
+    """One TrainedNets whose nets are the members' means (EnsembleMLP); the curves are member 0's,
+    the times the members' sums (they trained one after the other)."""
+    if len(members) == 1:
+        return members[0]
+    first = members[0]
+    return TrainedNets({n: EnsembleMLP([m.nets[n] for m in members]) for n in first.nets}, first.history,
+                       {n: sum(m.seconds[n] for m in members) for n in first.seconds},
+                       key_of("nets", FORMAT_VERSION, [m.key for m in members]), all(m.cached for m in members),
+                       first.specs, first.skipped, sum(m.wall_seconds for m in members))
 
 
 # ------------------------------------------------------------------------------ data

@@ -250,3 +250,43 @@ def test_model_test_tests_multi_frame_networks_on_their_own_targets(tmp_path, ca
     assert np.isfinite(table["r2"]).all() and (tmp_path / "acceleration.png").exists()
     assert metrics["flight_seconds"] == pytest.approx(1.5)
     assert np.allclose(np.diff(pd.read_csv(tmp_path / "rollout.csv")["t"]), 0.01)
+
+
+def test_an_ensemble_is_the_mean_of_its_members():
+    """model.ensemble: f, A and B of an ensemble's dynamics are the means of its members' (f is
+    linear in the nets' outputs), through the hand Jacobian pass and through torch alike."""
+    from sdexp.model.networks import EnsembleMLP
+
+    members = [random_nets(8, 3, 3, 9, seed=k) for k in range(3)]
+    dyns = [LearnedDynamics(n, 8, 3, 3, 9, ALPHA) for n in members]
+    mean = LearnedDynamics({name: EnsembleMLP([n[name] for n in members]) for name in members[0]}, 8, 3, 3, 9, ALPHA)
+    x, u = point(mean)
+    f, A, B = mean.linearize(x, u)
+    parts = [d.linearize(x, u) for d in dyns]
+    for got, k in ((f, 0), (A, 1), (B, 2)):
+        np.testing.assert_allclose(got, np.mean([p[k] for p in parts], axis=0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(mean.f(x, u), f, rtol=1e-12, atol=1e-12)
+    assert not np.allclose(parts[0][1], parts[1][1])   # the members differ: the mean is not any one
+    with pytest.raises(ValueError, match="same shape"):
+        EnsembleMLP([members[0]["d"], members[0]["g"]])
+
+
+def test_ensemble_members_train_from_their_own_seeds(tmp_path):
+    """Member 0 trains from the run's seed (the nets of ensemble 1, from the same cache entry),
+    the others from seeds of their own; the ensemble's nets are their means."""
+    from sdexp.model.training import ensemble, member_seed, train_models
+    from tests.model.test_networks import model_cfg
+
+    data = synthetic_dataset(n=1500, n_s=2, n_e=1, dim=2, m=3)
+    cfg = model_cfg(epochs=2)
+    seeds = [member_seed(7, k) for k in range(3)]
+    assert seeds[0] == 7 and len(set(seeds)) == 3 and min(seeds[1:]) >= 2 ** 32
+    members = [train_models(data, cfg, s, tmp_path, 0.2, progress=False) for s in seeds[:2]]
+    again = train_models(data, cfg, 7, tmp_path, 0.2, progress=False)
+    assert again.cached and again.key == members[0].key
+    both = ensemble(members)
+    X = torch.from_numpy(design(data, DECOMPOSED[0], np.arange(20))[0])
+    with torch.no_grad():
+        np.testing.assert_allclose(both.nets["d"](X).numpy(),
+                                   (members[0].nets["d"](X) + members[1].nets["d"](X)).numpy() / 2, rtol=1e-5)
+    assert both.key not in (members[0].key, members[1].key) and ensemble(members[:1]) is members[0]
