@@ -3,8 +3,8 @@ cached functions that call parallel ones. Two numba bugs, both open upstream, ar
 
 - numba issue 8578 (PR 9950): a cached function compiled in a process that *loaded* its
   ``parallel=True`` callee from the cache is saved without the hook that starts numba's threading
-  layer; loaded in a fresh process it calls a null pointer. sdexp's fem.element_forces calls the
-  parallel elastic_forces_2d, and whether its entry lacks the hook depends on which process
+  layer; loaded in a fresh process it calls a null pointer. sdexp's reference.element_forces calls the
+  parallel forces_2d, and whether its entry lacks the hook depends on which process
   compiled what first: CI on a fresh checkout crashed with a SIGSEGV this way (2026-11-26).
   Any entry loaded here starts the threading layer first, as numba's own hook would.
 - numba issue 4807: the index (signature -> data file) is rewritten by read, modify, write with

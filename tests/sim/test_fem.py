@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sdexp.eval.validate_fem import Beam, FreeBody, cantilever, stiff_plate_under_thrust, structured_beam
-from sdexp.sim.physics.integrator import Body, damp_deformation
+from sdexp.sim.physics.integrator import Body
 from sdexp.sim.physics.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
 from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.mesh.structured import box_tets, box_tris
@@ -121,16 +121,17 @@ def test_stiff_limit_follows_rigid_body_motion():
 
 
 def test_compiled_kernel_matches_the_numba_reference(block):
-    from sdexp.sim.physics.fem import corotated_cfunc_3d, kernels
+    from sdexp.sim.physics.fem import kernels
+    from sdexp.sim.physics.reference import corotated_forces_3d
 
     kernel = kernels().forces_3d
-    assert kernel is not corotated_cfunc_3d.ctypes, "the C kernel did not build"
+    assert kernel is not corotated_forces_3d.ctypes, "the C kernel did not build"
     rng = np.random.default_rng(5)
     x = block.rest @ matrix_from_euler(np.array([0.4, 1.0, -0.3])).T + 0.05 * rng.standard_normal(block.rest.shape)
     q1, q2 = rest_quaternions(block.n_elems), rest_quaternions(block.n_elems)
     for _ in range(3):  # warm starts evolve the same way
         f_c = elastic_forces(block, x, q1, kernel)
-        f_nb = elastic_forces(block, x, q2, corotated_cfunc_3d.ctypes)
+        f_nb = elastic_forces(block, x, q2, corotated_forces_3d.ctypes)
     np.testing.assert_allclose(f_c, f_nb, atol=1e-10 * np.abs(f_nb).max())
     np.testing.assert_allclose(q1, q2, atol=1e-12)
 
@@ -172,7 +173,7 @@ def spun_block(dim: int, order: int):
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("threads", [1, 2])
 def test_compiled_step_matches_the_numba_reference(dim, threads, order, precision, tol, tol_speed):
-    """kernels.c's advance (one OpenMP region per control step) against integrator.advance:
+    """kernels.c's advance (one OpenMP region per control step) against reference.advance:
     a block spun and thrown onto the ground and into a box, with a rotor, gravity, both
     dampings and added inertia on a few nodes (gravity on the physical mass), so every branch
     of the step runs; linear and quadratic elements; forces in float64 and in float32. In
@@ -257,6 +258,18 @@ def _rigid_field(x, rng, dim):
         w[:2] = 0.0
     x3 = np.pad(x, ((0, 0), (0, 3 - dim)))
     return (rng.standard_normal(3) + np.cross(w, x3 - x3.mean(0)))[:, :dim]
+
+
+def damp_deformation(x, v, mass, minv, keep):
+    """The step's deformation damping alone (reference.kick's sums, rigid_motion, drift's damping),
+    through the numba reference with a zero time step: nothing else moves."""
+    from sdexp.sim.physics.reference import S_LEN, drift, kick, rigid_motion
+
+    zeros, sums, ref = np.zeros_like(x), np.zeros(S_LEN), np.pad(x[0], (0, 3 - x.shape[1]))
+    kick(x, v, zeros[None], minv, mass, zeros, zeros, 0.0, 1.0, 0.0, np.ones(len(x)), ref, True, sums)
+    c, p, w = rigid_motion(sums, x.shape[1])
+    none = np.zeros((0, x.shape[1]))
+    drift(x, v, minv, 0.0, True, keep, ref, c, p, w, -np.inf, none, none, 0.0)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

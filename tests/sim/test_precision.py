@@ -12,10 +12,11 @@ from sdexp.cache import config_key
 from sdexp.config import NoiseConfig, SimConfig
 from sdexp.sim.drone import build_drone
 from sdexp.sim.mesh.structured import box_tets, box_tris
-from sdexp.sim.physics.fem import build_fem, corotated_cfunc_3d_f32, elastic_forces, stable_substep
+from sdexp.sim.physics.fem import build_fem, elastic_forces, stable_substep
 from sdexp.sim.physics.integrator import Body
 from sdexp.sim.physics.modes import free_frequencies, mass_scaling, stiffness, targeted_mass, top_modes
 from sdexp.sim.physics.quadratic import quadratic_mesh
+from sdexp.sim.physics.reference import corotated_forces_3d_f32
 from sdexp.sim.simulator import Simulator
 
 
@@ -40,7 +41,7 @@ def test_float32_kernels_agree(dim, order):
         body.x[:] = x
         body.forces_only(1)
         forces[precision] = body.fbuf[0].copy()
-        twin = corotated_cfunc_3d_f32.ctypes if (dim, order, real) == (3, 1, np.float32) else None
+        twin = corotated_forces_3d_f32.ctypes if (dim, order, real) == (3, 1, np.float32) else None
         forces[precision + " numba"] = elastic_forces(fem, x, kernel=twin, real=real)
     scale = np.abs(forces["float64 numba"]).max()
     assert np.abs(forces["float64"] - forces["float64 numba"]).max() < 1e-13 * scale

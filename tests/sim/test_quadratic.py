@@ -6,7 +6,8 @@ import pytest
 
 from sdexp.eval.validate_fem import Beam, FreeBody, cantilever, structured_beam
 from sdexp.sim.physics.fem import build_fem, elastic_forces, lame, rest_quaternions, stable_substep
-from sdexp.sim.physics.quadratic import QUAD_2D, QUAD_3D, boundary_subfaces, p2_range_3d, quadratic_mesh
+from sdexp.sim.physics.quadratic import QUAD_2D, QUAD_3D, boundary_subfaces, quadratic_mesh
+from sdexp.sim.physics.reference import p2_forces_range
 from sdexp.sensing.rotations import matrix_from_euler
 from sdexp.sim.mesh.structured import box_tets, box_tris
 
@@ -96,7 +97,7 @@ def test_one_rotation_per_element_would_leak_torque():
     torque = {}
     for per_point in (True, False):
         f, q = np.zeros_like(x), rest_quaternions(fem.n_rotations)
-        p2_range_3d(x, fem.elems, fem.Bm, fem.vol, fem.mu, fem.lam, q, f, 0, fem.n_elems, per_point, 200, np.float64)
+        p2_forces_range(x, fem.elems, fem.Bm, fem.vol, fem.mu, fem.lam, q, f, 0, fem.n_elems, per_point, 200, np.float64)
         torque[per_point] = np.abs(np.cross(x, f).sum(axis=0)).max() / np.abs(f).max()
     assert torque[True] < 1e-12 and torque[False] > 1e-3
 

@@ -130,7 +130,7 @@ def overrides(effect: Effect, hook: str) -> bool:
 
 def rotor_normals(x: np.ndarray, rotors) -> np.ndarray:
     """(m, dim) unit area-weighted normals of the rotor patches at positions x (the thrust
-    directions of sdexp.sim.physics.integrator.rotor_forces)."""
+    directions of sdexp.sim.physics.reference.rotor_forces)."""
     f = rotors.faces
     if x.shape[1] == 3:
         u, w = x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]]

@@ -145,7 +145,7 @@ int NAME(corotated_forces_3d)(const double *x, const int32_t *el, const real *Bm
 }
 
 /* ------------------------------------------------------------------------------------------
- * Quadratic elements (quadratic.py has the math and the numba reference p2_range_3d/_2d).
+ * Quadratic elements (quadratic.py has the math; reference.py p2_forces_range and _2d in numba).
  * 10-node tets, VTK order: corners 0-3, edges 4 (0,1) 5 (1,2) 6 (0,2) 7 (0,3) 8 (1,3) 9 (2,3).
  * Blocked like forces_impl, el too: el (nb, 10, B), Bm (nb, 9, B), vol (nb, B), q (nb, 16, B) holding
  * one warm-start quaternion per quadrature point (slot k at rows 4k..4k+3). */
@@ -253,7 +253,7 @@ static int NAME(p2_forces_blocked)(const double *restrict x, const int32_t *rest
     return inverted;
 }
 
-/* 6-node triangles [e0, e1) into f (nv, 2), plane strain (quadratic.p2_range_2d): corners 0-2,
+/* 6-node triangles [e0, e1) into f (nv, 2), plane strain (reference.p2_forces_range_2d): corners 0-2,
  * edges 3 (0,1) 4 (1,2) 5 (0,2); the exact 2D polar rotation at each of 3 quadrature points. */
 static int NAME(p2_forces_range_2d)(const double *restrict x, const int32_t *restrict el, const real *restrict Bm,
         const real *restrict vol, real mu, real lam, double *restrict f, int64_t e0, int64_t e1)
@@ -302,7 +302,7 @@ static int NAME(p2_forces_range_2d)(const double *restrict x, const int32_t *res
     return inverted;
 }
 
-/* Triangle forces of elements [e0, e1) into f (nv, 2), plane strain (fem.corotated_range_2d). */
+/* Triangle forces of elements [e0, e1) into f (nv, 2), plane strain (reference.forces_range_2d). */
 static int NAME(forces_range_2d)(const double *restrict x, const int32_t *restrict el, const real *restrict Bm,
         const real *restrict vol, real mu, real lam, double *restrict f, int64_t e0, int64_t e1)
 {

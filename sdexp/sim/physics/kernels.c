@@ -1,6 +1,6 @@
-/* The hot loops of sdexp's simulator: co-rotated linear element forces (see fem.py for the
- * math; fem.corotated_range_3d/_2d are the same computation in numba) and whole control steps
- * of substeps (advance; integrator.advance is its numba reference and fallback).
+/* The hot loops of sdexp's simulator: co-rotated element forces (forces.h; see fem.py and
+ * quadratic.py for the math) and whole control steps of substeps (advance). reference.py is the
+ * numba twin of both, in the same order and with the same names, and the fallback.
  *
  * Elements are processed in blocks of B: a gather of the edge vectors Ds into
  * structure-of-arrays buffers (scalar; quadratic tets: SIMD gathers from a blocked el), one
@@ -72,7 +72,7 @@ static int step_forces(const Step *s, double *f, int64_t e0, int64_t e1)
     return s->single ? element_forces_f32(s, f, e0, e1) : element_forces(s, f, e0, e1);
 }
 
-/* integrator.rotor_forces: thrust along each patch's area-weighted normal. */
+/* thrust along each patch's area-weighted normal. */
 static void rotor_forces(const Step *s)
 {
     const int64_t d = s->dim;
@@ -141,7 +141,7 @@ static void rigid_motion(const double *sum, int64_t dim, double c[3], double p[3
 
 /* Contact of one vertex (position p, velocity u) with the ground and the static boxes: project
  * out along the normal, cancel the inward normal velocity, take Coulomb friction off the
- * tangential velocity (integrator.integrate). */
+ * tangential velocity. */
 static inline __attribute__((always_inline)) void contact(const Step *restrict s, const int d,
         double *restrict p, double *restrict u)
 {
@@ -445,7 +445,7 @@ static inline __attribute__((always_inline)) double drift(const Step *restrict s
     return vmax;
 }
 
-/* n_sub substeps of integrator.advance in one OpenMP region: per substep, thread t adds the
+/* n_sub substeps (reference.advance) in one OpenMP region: per substep, thread t adds the
  * forces of element chunk t into fbuf[t] (thread 0 also the rotors'), then updates the
  * velocities of vertex chunk t and its share of the damping sums, then damps and moves them.
  * Three barriers a substep instead of a parallel region plus a serial pass.
