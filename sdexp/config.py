@@ -2,7 +2,9 @@
 
 A misspelled key in a YAML file or on the command line is an error because these dataclasses
 are registered as the root schema (``base_config`` in conf/config.yaml's defaults list).
-Physical ranges are checked by :func:`validate`, which names the key and the allowed range.
+A field declares its physical range in its metadata (sdexp.ranges); :func:`validate` reads them
+with the one checker the experiments' params and the effects use too, then checks what depends on
+two keys at once, and names the key and the allowed range.
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from sdexp.cache import KEY_UNLESS_DEFAULT
 from sdexp.errors import UserError, one_line
+from sdexp.ranges import at_least, between, check_fields, choices, nonnegative, param, positive, ranged
 
 
 ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp.sim.physics.fem)
@@ -56,7 +59,7 @@ def mesh_path_candidates(path: str) -> list[Path]:
 @dataclass
 class MeshConfig:
     edge_length: float = 0.2   # target element edge length (m); the resolution knob
-    stop_energy: float = 10.0  # fTetWild quality target (3D only); lower = better tets, slower
+    stop_energy: float = param(10.0, positive())  # fTetWild quality target (3D only); lower = better tets, slower
     coarsen: bool = False      # fTetWild drops every vertex it can while keeping the quality
     mirror: List[str] = field(default_factory=list)  # 3D: mesh one cell, reflect across x = 0 / z = 0
                                                      # (sdexp.sim.mesh.mirror); [] = mesh the whole body
@@ -83,20 +86,20 @@ class MeshConfig:
 @dataclass
 class DroneConfig:
     name: str = MISSING
-    dim: int = 3                       # 3 (tets) or 2 (triangles, plane strain)
+    dim: int = param(3, choices((2, 3)))   # 3 (tets) or 2 (triangles, plane strain)
     shape: str = MISSING               # geometry generator in sdexp.sim.mesh.shapes
     size: List[float] = MISSING        # bounding lengths (x, y[, z]) in metres, y is "up"
-    thickness: Optional[float] = None  # plate thickness when the shape is not a flat plate
-    mass: float = 1.0                  # kg
-    youngs_modulus: float = MISSING    # Pa
-    poisson_ratio: float = 0.3         # the paper does not state it
-    damping: float = 1.0               # mass-proportional damping of the vertex velocities (1/s)
-    deformation_damping: float = 20.0  # mass-proportional damping of the deformation velocity (1/s)
+    thickness: Optional[float] = param(None, positive("m"))  # plate thickness when the shape is not a flat plate
+    mass: float = param(1.0, positive("kg"))
+    youngs_modulus: float = param(MISSING, positive("Pa"))
+    poisson_ratio: float = param(0.3, between(0, 0.5, "()"))   # the paper does not state it
+    damping: float = param(1.0, nonnegative("1/s"))   # mass-proportional damping of the vertex velocities (1/s)
+    deformation_damping: float = param(20.0, nonnegative("1/s"))   # mass-proportional damping of the deformation velocity (1/s)
     num_rotors: int = MISSING
-    num_sensors: int = MISSING         # peripheral IMUs, i.e. the length of s
-    max_thrust: float = 10.0           # N per rotor; commands are clipped to [-max, max]
-    rotor_radius: float = 0.12         # radius of the vertex patch a rotor is bound to (m)
-    imu_radius: float = 0.12           # radius of the vertex patch an IMU is bound to (m)
+    num_sensors: int = param(MISSING, nonnegative())   # peripheral IMUs, i.e. the length of s
+    max_thrust: float = param(10.0, positive("N"))   # N per rotor; commands are clipped to [-max, max]
+    rotor_radius: float = param(0.12, positive("m"))   # radius of the vertex patch a rotor is bound to (m)
+    imu_radius: float = param(0.12, positive("m"))   # radius of the vertex patch an IMU is bound to (m)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     params: Dict[str, float] = field(default_factory=dict)  # shape-specific proportions
     # drone.mesh.file only (sdexp.sim.mesh.shapes.from_file): positions in metres (after mesh.scale)
@@ -113,81 +116,81 @@ class BoxConfig:
 
 @dataclass
 class SimConfig:
-    control_dt: float = 0.01             # s; the control loop runs at 100 Hz
+    control_dt: float = param(0.01, positive("s"))   # s; the control loop runs at 100 Hz
     substep: Optional[float] = None      # s; None = largest stable explicit step x safety
-    stability_safety: float = 0.8        # fraction of the estimated stability limit 2/omega_max
-    gravity: float = 9.81                # m/s^2 along -y
+    stability_safety: float = param(0.8, between(0, 1, "(]"))   # fraction of the estimated stability limit 2/omega_max
+    gravity: float = param(9.81, nonnegative("m/s^2 (it points along -y)"))
     ground: Optional[float] = None       # height of a ground plane, None = no ground
     obstacles: List[BoxConfig] = field(default_factory=list)  # static axis-aligned boxes
-    friction: float = 0.5                # Coulomb coefficient on ground and boxes
-    max_speed: float = 100.0             # m/s; faster vertices count as a blow-up
-    max_stretch: float = 4.0             # body extent / rest extent beyond which it has blown up
-    threads: int = field(default=0, metadata=NOT_KEY)   # FEM kernel threads; 0 = auto (2 for big meshes)
-    element: str = "quadratic"           # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
+    friction: float = param(0.5, nonnegative())   # Coulomb coefficient on ground and boxes
+    max_speed: float = param(100.0, positive("m/s"))   # m/s; faster vertices count as a blow-up
+    max_stretch: float = param(4.0, ranged(lambda v: v > 1, "> 1 (x the rest extent)"))   # body extent / rest extent beyond which it has blown up
+    threads: int = param(0, nonnegative("(0 = auto)", **NOT_KEY))   # FEM kernel threads; 0 = auto (2 for big meshes)
+    element: str = param("quadratic", choices(ELEMENTS))   # quadratic (10-node tets / 6-node triangles) | linear (4 / 3 nodes: locks)
     # elastic forces in float64 | float32 (positions and velocities stay float64); keyed only when not float64
-    precision: str = field(default="float64", metadata=UNLESS_DEFAULT)
+    precision: str = param("float64", choices(PRECISIONS, **UNLESS_DEFAULT))
     # targeted inertial mass scaling: at most this fraction of the drone's mass added as inertia on
     # the nodes of the modes that limit the stable step (gravity on the physical mass); 0 = off
-    mass_scaling: float = field(default=0.0, metadata=UNLESS_DEFAULT)
+    mass_scaling: float = param(0.0, between(0, MAX_MASS_SCALING, unit="(added inertia as a fraction of the drone's mass; 0 = off)", **UNLESS_DEFAULT))
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.physics.effects), each {name|_target_, params}
 
 
 @dataclass
 class NoiseConfig:
     enabled: bool = True
-    angle_std_deg: float = 0.573      # Gaussian on every angle reading (paper, supplement E)
-    position_std: float = 0.01        # m, Gaussian on every position reading
-    angle_rate_std_deg: float = 0.573  # deg/s on angle rates: our reading of the table
-    velocity_std: float = 0.01        # m/s on velocities: our reading of the table
-    rotor_std: float = 0.1            # N, Gaussian perturbation of every applied thrust
-    delay: float = 0.03               # s between command and the rotors applying it
+    angle_std_deg: float = param(0.573, nonnegative())   # Gaussian on every angle reading (paper, supplement E)
+    position_std: float = param(0.01, nonnegative())   # m, Gaussian on every position reading
+    angle_rate_std_deg: float = param(0.573, nonnegative())   # deg/s on angle rates: our reading of the table
+    velocity_std: float = param(0.01, nonnegative())   # m/s on velocities: our reading of the table
+    rotor_std: float = param(0.1, nonnegative())   # N, Gaussian perturbation of every applied thrust
+    delay: float = param(0.03, nonnegative())   # s between command and the rotors applying it
 
 
 @dataclass
 class DataConfig:
     """Training data (supplement F): random thrust holds from the undeformed drone at rest."""
-    samples: int = 150_000          # transitions (one per 10 ms control step)
-    hold_seconds: float = 1.0       # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
+    samples: int = param(150_000, positive())   # transitions (one per 10 ms control step)
+    hold_seconds: float = param(1.0, positive("s"))   # each rotor's thrust is redrawn from U[-Tmax, Tmax] this often
     thrust_range: List[float] = field(default_factory=lambda: [-1.0, 1.0])  # U[lo, hi] x Tmax (paper: [-1, 1])
     around_hover: bool = False      # true: each hold draws hover thrust + U[lo, hi] x Tmax (paper: false)
-    hover: str = "rigid"            # that hover thrust: rigid (the rest shape's, weight spread evenly) |
+    hover: str = param("rigid", choices(("rigid", "shape")))   # that hover thrust: rigid (the rest shape's, weight spread evenly) |
                                     # shape (plus the no-lift pattern that keeps the body flattest, sim.statics)
     # deg: each rotor's draw narrowed to the thrust that bends the body at most this much on its own
     # (sdexp.model.generate.thrust_draw); null: every rotor draws the whole range (paper)
-    bend_budget_deg: Optional[float] = field(default=None, metadata=UNLESS_DEFAULT)
-    deform_range: float = 0.0       # x Tmax: largest rotor offset of a held thrust pattern with no net
+    bend_budget_deg: Optional[float] = param(None, between(0, 180, "(]", "deg, or null (no limit)", **UNLESS_DEFAULT))
+    deform_range: float = param(0.0, between(0, 1, unit="x max_thrust"))   # x Tmax: largest rotor offset of a held thrust pattern with no net
                                     # lift or tilting torque on the rest shape (it only deforms); 0: none (paper)
-    deform_hold_seconds: float = 1.0  # such a pattern is redrawn this often
+    deform_hold_seconds: float = param(1.0, positive("s"))   # such a pattern is redrawn this often
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
-    region: float = 30.0            # m from the start beyond which an episode restarts
-    workers: int = field(default=2, metadata=NOT_KEY)   # simulation processes
-    validation_fraction: float = 0.1  # held-out episodes
+    region: float = param(30.0, positive("m"))   # m from the start beyond which an episode restarts
+    workers: int = param(2, at_least(1, **NOT_KEY))   # simulation processes
+    validation_fraction: float = param(0.1, between(0, 1, "()"))   # held-out episodes
 
 
 @dataclass
 class ModelConfig:
     """The d, g, h networks (Eq. 4) and their training (supplement F)."""
-    hidden: int = 128
-    blocks: int = 4                 # residual blocks of linear layers with ReLU
-    epochs: int = 50
-    batch_size: int = 512
-    lr: float = 1e-3
-    lr_decay: float = 0.8           # multiplied in every lr_step epochs
-    lr_step: int = 20
-    loss: str = "l1"                # l1 | l2
+    hidden: int = param(128, at_least(1))
+    blocks: int = param(4, at_least(1))   # residual blocks of linear layers with ReLU
+    epochs: int = param(50, at_least(1))
+    batch_size: int = param(512, at_least(1))
+    lr: float = param(1e-3, positive())
+    lr_decay: float = param(0.8, between(0, 1, "(]"))   # multiplied in every lr_step epochs
+    lr_step: int = param(20, at_least(1))
+    loss: str = param("l1", choices(("l1", "l2")))
     keep_best: bool = True          # return the epoch of lowest validation loss (false: the last, as the paper)
-    linear: List[str] = field(default_factory=list)  # nets (d, g, h, raw) that are linear maps, no hidden layers
-    horizon: int = 1                # predict the velocity this many frames ahead (paper: 1); alpha = horizon x dt
+    linear: List[str] = param([], choices(("d", "g", "h", "raw")))  # nets (d, g, h, raw) that are linear maps, no hidden layers
+    horizon: int = param(1, at_least(1, "frame"))   # predict the velocity this many frames ahead (paper: 1); alpha = horizon x dt
     # control steps from a command to the thrust it sets (the rotors' lag: 3 under the paper's
     # 30 ms at 10 ms steps). The nets learn a state's change from the command acting on it, not
     # the one sent at the same step (with 0.1 s holds and a 3-step lag, the sent one halves the
     # learned torque map: docs/learned_dynamics.md), and ours predicts the state over the lag with
     # the commands already sent (control/relinearizing.py). 0: the paper's model
-    command_delay: int = field(default=0, metadata=UNLESS_DEFAULT)
+    command_delay: int = param(0, between(0, 100, unit="control steps", **UNLESS_DEFAULT))
     # d, g and h each the mean of this many nets, trained alike from different seeds (member 0 from
     # the run's seed: the nets of ensemble 1; sdexp.model.identification). One net's errors that
     # depend on its initialisation and its held-out split average out; 1: one net each (the paper)
-    ensemble: int = field(default=1, metadata=UNLESS_DEFAULT)
+    ensemble: int = param(1, between(1, 32, unit="nets per network", **UNLESS_DEFAULT))
     threads: int = field(default=2, metadata=NOT_KEY)   # torch threads: >= 2 trains d, g, h side by side, one thread each
 
 
@@ -196,11 +199,11 @@ class NeuralControllerConfig:
     """The neural-controller baseline (sdexp.control.neural), trained through d, g, h."""
     hidden: int = 64
     layers: int = 2
-    iterations: int = 300
-    batch: int = 64
-    horizon: int = 150              # control steps back-propagated through
+    iterations: int = param(300, at_least(1))
+    batch: int = param(64, at_least(1))
+    horizon: int = param(150, at_least(1))   # control steps back-propagated through
     lr: float = 1e-3
-    goal_radius: float = 6.0        # m; training goals are drawn in a ball this large
+    goal_radius: float = param(6.0, positive("m"))   # m; training goals are drawn in a ball this large
     w_att: float = 1.0              # loss weights: attitude, bend, velocity, thrust
     w_bend: float = 0.1
     w_vel: float = 0.05
@@ -211,65 +214,65 @@ class NeuralControllerConfig:
 class ControlConfig:
     """Algorithm 1 and the LQR baselines (supplement G's table: Q gains 100-200 for s and p,
     50-200 for e, R = 2, kp = 0.03, kd = 0.0001, n = 10)."""
-    q_s: float = 100.0
-    q_e: float = 100.0
-    q_p: float = 100.0
-    velocity_scale: float = 1.0     # Q on a rate = this x Q on its angle/position
+    q_s: float = param(100.0, positive())
+    q_e: float = param(100.0, positive())
+    q_p: float = param(100.0, positive())
+    velocity_scale: float = param(1.0, nonnegative())   # Q on a rate = this x Q on its angle/position
     q_p_axes: Optional[List[float]] = None   # Q on position (and velocity) per axis = q_p x these (x, y[, z]);
                                              # null: q_p on every axis (the paper)
     q_e_axes: Optional[List[float]] = None   # Q on the Euler angles (and rates) = q_e x these (3D: e_x, e_y = yaw
                                              # about the up axis, e_z; 2D: one); null: q_e on each (the paper)
-    r: float = 2.0
-    kp: float = 0.03
-    kd: float = 0.0001
-    waypoint_max: Optional[float] = None   # ours: m, the waypoint's position offset at most this long
+    r: float = param(2.0, positive())
+    kp: float = param(0.03, between(0, 1))
+    kd: float = param(0.0001, nonnegative())
+    waypoint_max: Optional[float] = param(None, positive("or null"))   # ours: m, the waypoint's position offset at most this long
                                            # (a far goal approached steadily; null: kp alone, the paper)
-    n: int = 10                     # relinearise every n control steps (100/n Hz)
+    n: int = param(10, at_least(1, "control steps"))   # relinearise every n control steps (100/n Hz)
     relinearize: bool = True        # false: linearise once at a given operating point
     feedforward: bool = False       # ours: thrust that holds the goal's bends (not in the paper; relinearizing.py)
-    riccati: str = "continuous"     # continuous (the paper) | discrete (gain of the 100 Hz sampled loop)
+    riccati: str = param("continuous", choices(("continuous", "discrete")))   # continuous (the paper) | discrete (gain of the 100 Hz sampled loop)
     # ours regulates a bend channel only where its spread in the training data is at least this many
     # times the IMU angle noise (noise.angle_std_deg; noise off: every bend); below, the bend is
     # sensor noise and its learned dynamics a fit to noise (the stiff drones: spread 1.4-1.6x the
     # noise; every soft drone 11x or more). 0: every bend (the paper). control/lqr.py regulated_states
-    bend_snr: float = 3.0
+    bend_snr: float = param(3.0, nonnegative("(0: every bend)"))
     # ours: Q's weight on the differences of bends the task asks to move together (the same
     # non-zero target: the star's folding wings), q_s_alike x (s_a - s_b)^2 per pair; 0: the
     # paper's diagonal Q. control/lqr.py alike_weights
-    q_s_alike: float = 0.0
+    q_s_alike: float = param(0.0, nonnegative("(0: the paper's diagonal Q)"))
     # ours: R's weight on thrust differences among the rotors that drive those bends (each bend's
     # rotor read from the learned model's B), r_alike x r x (u_a - u_b)^2 per pair; their common
     # thrust costs r as before; 0: the paper's diagonal R. control/lqr.py alike_thrust_weights
-    r_alike: float = 0.0
+    r_alike: float = param(0.0, nonnegative("(0: the paper's diagonal R)"))
     # ours: each relinearisation moves the operating thrust this fraction of the way toward an even
     # share of its total, within the thrust directions the learned rigid motion does not feel; 0:
     # Algorithm 1 as written (the operating thrust is the last command). control/relinearizing.py
-    share_pull: float = 0.0
+    share_pull: float = param(0.0, between(0, 1, unit="(0: Algorithm 1 as written)"))
     # ours: the share of the feedback's last correction the operating thrust keeps at each
     # relinearisation (with feedforward: the share the integral part keeps); 1: Algorithm 1 as
     # written, whose integral then acts within one period n. control/relinearizing.py
-    integral: float = 1.0
+    integral: float = param(1.0, between(0, 1, "(]", "(1: Algorithm 1 as written)"))
     # s: every controller reads the decomposed state through a first-order low-pass of this time
     # constant, so that the rate feedback stops pumping a soft elastic mode the IMUs sit on (the
     # rainbow's 5 Hz mode, control/lowpass.py); 0: the state as read (the paper)
-    lowpass: float = 0.0
+    lowpass: float = param(0.0, between(0, 1, unit="s (0: the state as read)"))
     # ours: the phase (deg) the feedback's fastest rate may lose over the command delay
     # (model.command_delay control steps): R is raised until max |eig(B K)| x delay <= this
     # (control/relinearizing.py max_rate); null: R as given (the paper)
-    delay_phase_deg: Optional[float] = None
+    delay_phase_deg: Optional[float] = param(None, between(0, 180, "(]", "deg or null"))
     neural: NeuralControllerConfig = field(default_factory=NeuralControllerConfig)
 
 
 @dataclass
 class RecordConfig:
     """Flights of the simulator through manoeuvres (sdexp.discrepancy.record)."""
-    flights: int = 8
-    seconds: float = 6.0               # per flight, plus 1 s of settling
+    flights: int = param(8, at_least(1))
+    seconds: float = param(6.0, positive("s"))   # per flight, plus 1 s of settling
     manoeuvres: List[str] = field(default_factory=lambda: [
         "hover", "steps", "random_holds", "ground_pass", "differential", "high_speed"])
     height: float = 2.5                # m, start height of the lowest vertex above the ground
     ground: float = 0.0                # m, where the ground-pass manoeuvre skims to
-    amplitude: float = 0.3             # excitation thrust as a fraction of the hover thrust
+    amplitude: float = param(0.3, nonnegative())   # excitation thrust as a fraction of the hover thrust
 
 
 @dataclass
@@ -277,26 +280,26 @@ class DiscrepancyConfig:
     """The sim-vs-measured workflow (sdexp.discrepancy.workflow)."""
     measured: Optional[str] = None     # folder of measured logs (README: log format)
     out: Optional[str] = None          # where the fitted effect override is written; null = the run folder
-    horizon: float = 0.2               # s predicted from each re-initialised measured state
-    stride: float = 0.5                # s between window starts
-    history: float = 0.3               # s of commands replayed through the actuation chain first, at
+    horizon: float = param(0.2, positive("s"))   # s predicted from each re-initialised measured state
+    stride: float = param(0.5, positive("s"))   # s between window starts
+    history: float = param(0.3, nonnegative("s"))   # s of commands replayed through the actuation chain first, at
                                        # least: a slow candidate asks for more (its FitSpec.memory)
-    start_average: int = 8             # rows the start state's p, e, s are averaged over (causal, rate-carried)
-    holdout: float = 0.5               # fraction of flights held out (at least one): tests need many windows
+    start_average: int = param(8, at_least(1, "rows"))   # rows the start state's p, e, s are averaged over (causal, rate-carried)
+    holdout: float = param(0.5, between(0, 1, "()"))   # fraction of flights held out (at least one): tests need many windows
     fit_windows: int = 30              # training windows the fits use (evenly thinned): the cost driver
     candidates: List[Any] = field(default_factory=list)  # library names and {_target_: ...} entries;
                                                           # [] = the whole effect library
-    alpha: float = 0.05                # family-wise error rate of the candidate tests (Bonferroni)
-    min_gain: float = 0.02             # smallest held-out relative improvement that names an effect
-    screen: int = 3                    # candidates refined and tested on held-out flights
-    max_effects: int = 2               # effects added one after another while the residual remains
+    alpha: float = param(0.05, between(0, 1, "()"))   # family-wise error rate of the candidate tests (Bonferroni)
+    min_gain: float = param(0.02, nonnegative())   # smallest held-out relative improvement that names an effect
+    screen: int = param(3, at_least(1))   # candidates refined and tested on held-out flights
+    max_effects: int = param(2, at_least(1))   # effects added one after another while the residual remains
     # nominal simulated flights that calibrate the noise floor; null: as many as the unexplained
     # test needs on this drone (workflow.floor_flight_count: 8 or more, by its channel count)
-    floor_flights: Optional[int] = None
-    unexplained_ratio: float = 1.2     # a channel's residual / noise floor above which, if significant over
+    floor_flights: Optional[int] = param(None, at_least(1, "or null (as many as the unexplained test needs)"))
+    unexplained_ratio: float = param(1.2, at_least(1, "(a multiple of the noise floor)"))   # a channel's residual / noise floor above which, if significant over
                                        # held-out flights and replicated on training flights, it is unexplained
-    second_effect_ratio: float = 1.5   # held-out loss / the floor's above which another effect is sought
-    explained_enough: float = 0.8      # share of the gap below which named effects with channels left
+    second_effect_ratio: float = param(1.5, at_least(1, "(a multiple of the noise floor)"))   # held-out loss / the floor's above which another effect is sought
+    explained_enough: float = param(0.8, between(0, 1, "(]"))   # share of the gap below which named effects with channels left
                                        # above the floor are answered "partly" (the rest unexplained)
     push: bool = True                  # the per-window push diagnostic (push.csv/png): 8 rollouts more
     record: RecordConfig = field(default_factory=RecordConfig)
@@ -307,10 +310,10 @@ class FlightConfig:
     """When a controlled flight (sdexp.control.rollout.fly) is lost: the same limits for every
     controller and task. Past either, the episode ends as ``loss_of_control`` with its reason and
     time, next to the simulator's blow-ups and the controller's failures (README "Metrics")."""
-    max_tilt_deg: Optional[float] = 90.0  # angle between the body's up axis (the frame IMU's Y) and
+    max_tilt_deg: Optional[float] = param(90.0, between(0, 180, "(]", "deg or null"))  # angle between the body's up axis (the frame IMU's Y) and
                                           # world +Y; past 90 deg the rotors push the body down: the
                                           # paper's "illegal configuration". null: no tilt limit
-    arena_margin: Optional[float] = 10.0  # m: the measured position may stray this far from the box
+    arena_margin: Optional[float] = param(10.0, positive("m or null"))  # m: the measured position may stray this far from the box
                                           # spanned by the task's start and its goal positions over the
                                           # task (p_goal(0), p_goal(seconds)); 10 m is over 3x the
                                           # SOTA task's 3 m legs, so only a flight gone astray leaves.
@@ -332,7 +335,7 @@ class Config:
     # caps sim.threads, data.workers, model.threads and torch/BLAS/numba threads by it); null = auto:
     # the cores this process may use (a Slurm job: its allocation) divided by the jobs that run beside
     # it on this machine (hydra/launcher=joblib: its n_jobs; submitit_local: the sweep's jobs)
-    cores: Optional[int] = None
+    cores: Optional[int] = param(None, at_least(1, "or null (auto)"))
     # the multirun folder that ``sdexp experiment=report`` aggregates (experiment.params.sweep_dir)
     sweep_dir: Optional[str] = None
     drone: DroneConfig = field(default_factory=DroneConfig)
@@ -369,10 +372,11 @@ def _nonfinite(value: Any) -> bool:
 
 
 def check_range(ok: bool, key: str, value: Any, allowed: str) -> None:
-    """``inf`` passes ``> 0`` and ``nan`` fails every comparison: a non-finite number is always
-    out of range here, whatever ``ok`` says."""
+    """A range that depends on more than the key itself (sdexp.ranges declares the others on
+    their fields), in the same words. ``inf`` passes ``> 0`` and ``nan`` fails every comparison:
+    a non-finite number is always out of range here, whatever ``ok`` says."""
     if not ok or _nonfinite(value):
-        raise UserError(f"{key} = {value!r} is not physical: allowed {allowed}")
+        raise UserError(f"{key} = {value!r} is out of range: allowed {allowed}")
 
 
 # ------------------------------------------------------------------ the shape of the config
@@ -490,7 +494,8 @@ def check_finite(node: Any, prefix: str = "") -> None:
 
 
 def validate(cfg: DictConfig | Config) -> None:
-    """Raise UserError naming the first key whose value is outside its physical range."""
+    """Raise UserError naming the first key whose value is outside its physical range: the
+    ranges the schema's fields declare (sdexp.ranges), then what depends on two keys at once."""
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.structured(cfg)
     check_keys(cfg)
@@ -500,24 +505,16 @@ def validate(cfg: DictConfig | Config) -> None:
     except OmegaConfBaseException as err:   # an interpolation that does not resolve
         key = getattr(err, "full_key", None)
         raise UserError(f"{key}: {one_line(err)}" if key else one_line(err)) from None
+    check_fields(cfg, Config)
     _check_drone(cfg.drone)
     _check_sim(cfg)
-    _check_learning(cfg.data, cfg.model)
+    _check_learning(cfg.data)
     _check_control(cfg)
-    _check_discrepancy(cfg.discrepancy)
-    check_finite(cfg)   # what no range above names: sim.ground, effects' and shapes' params, ...
+    check_finite(cfg)   # what no range names: sim.ground, effects' and shapes' params, ...
 
 
 def _check_drone(d) -> None:
-    """The drone: material, design, and a mesh whose size is neither absurd nor degenerate."""
-    check_range(d.dim in (2, 3), "drone.dim", d.dim, "2 or 3")
-    check_range(d.mass > 0, "drone.mass", d.mass, "> 0 kg")
-    check_range(d.youngs_modulus > 0, "drone.youngs_modulus", d.youngs_modulus, "> 0 Pa")
-    check_range(0 < d.poisson_ratio < 0.5, "drone.poisson_ratio", d.poisson_ratio, "in (0, 0.5)")
-    check_range(d.damping >= 0, "drone.damping", d.damping, ">= 0 1/s")
-    check_range(d.deformation_damping >= 0, "drone.deformation_damping", d.deformation_damping, ">= 0 1/s")
-    check_range(d.max_thrust > 0, "drone.max_thrust", d.max_thrust, "> 0 N")
-    check_range(d.num_sensors >= 0, "drone.num_sensors", d.num_sensors, ">= 0")
+    """The drone's design and a mesh whose size is neither absurd nor degenerate."""
     if d.shape == "file" and d.mesh.file is None:   # drone=custom as it stands: the template
         raise UserError(f"drone.mesh.file has no value: drone {d.name} is made from a mesh file, e.g. "
                         "drone.mesh.file=body.stl 'drone.rotors=[[x,y,z],...]' (README, Your own drone)")
@@ -528,12 +525,7 @@ def _check_drone(d) -> None:
         for key in ("rotors", "rotor_normals", "imus"):
             check_range(not getattr(d, key), f"drone.{key}", list(getattr(d, key)),
                         "[] unless drone.mesh.file is set (the built-in shapes place their own)")
-    check_range(d.thickness is None or d.thickness > 0, "drone.thickness", d.thickness, "> 0 m")
-    check_range(d.rotor_radius > 0, "drone.rotor_radius", d.rotor_radius, "> 0 m")
-    check_range(d.imu_radius > 0, "drone.imu_radius", d.imu_radius, "> 0 m")
-    if d.mesh.file is None:   # a drone from a file: its size is the file's (sim.checks)
-        check_edge_length(d, list(d.size))
-    check_range(d.mesh.stop_energy > 0, "drone.mesh.stop_energy", d.mesh.stop_energy, "> 0")
+        check_edge_length(d, list(d.size))   # a drone from a file: its size is the file's (sim.checks)
     check_range(not d.mesh.mirror or (d.dim == 3 and len(set(d.mesh.mirror)) == len(d.mesh.mirror)
                                  and set(d.mesh.mirror) <= {"x", "z"}),
                 "drone.mesh.mirror", list(d.mesh.mirror), "a list of distinct planes x, z (3D drones only)")
@@ -558,22 +550,10 @@ def check_edge_length(d, size: list[float]) -> None:
 
 
 def _check_sim(cfg) -> None:
-    """The simulator, the run's cores and seed, the obstacles."""
+    """The substep within the control step, the seed, the obstacles."""
     d, s = cfg.drone, cfg.sim
-    check_range(s.control_dt > 0, "sim.control_dt", s.control_dt, "> 0 s")
     check_range(s.substep is None or 0 < s.substep <= s.control_dt, "sim.substep", s.substep,
                 "null or in (0, sim.control_dt]")
-    check_range(0 < s.stability_safety <= 1, "sim.stability_safety", s.stability_safety, "in (0, 1]")
-    check_range(s.threads >= 0, "sim.threads", s.threads, ">= 0 (0 = auto)")
-    check_range(s.element in ELEMENTS, "sim.element", s.element, " or ".join(ELEMENTS))
-    check_range(s.precision in PRECISIONS, "sim.precision", s.precision, " or ".join(PRECISIONS))
-    check_range(0 <= s.mass_scaling <= MAX_MASS_SCALING, "sim.mass_scaling", s.mass_scaling,
-                f"in [0, {MAX_MASS_SCALING:g}] (added inertia as a fraction of the drone's mass; 0 = off)")
-    check_range(s.friction >= 0, "sim.friction", s.friction, ">= 0")
-    check_range(s.gravity >= 0, "sim.gravity", s.gravity, ">= 0 m/s^2 (it points along -y)")
-    check_range(s.max_speed > 0, "sim.max_speed", s.max_speed, "> 0 m/s")
-    check_range(s.max_stretch > 1, "sim.max_stretch", s.max_stretch, "> 1 (x the rest extent)")
-    check_range(cfg.cores is None or cfg.cores >= 1, "cores", cfg.cores, "null (auto) or >= 1")
     if not isinstance(cfg.seed, bool) and isinstance(cfg.seed, int) and not 0 <= cfg.seed < 2 ** 32:
         raise UserError(f"seed = {cfg.seed} is out of range: allowed 0 to {2 ** 32 - 1}")
     for i, b in enumerate(s.obstacles):
@@ -582,91 +562,24 @@ def _check_sim(cfg) -> None:
                     f"min < max, {d.dim} coordinates each")
 
 
-def _check_learning(a, m) -> None:
-    """The data recipe and the learned model."""
-    check_range(a.samples > 0, "data.samples", a.samples, "> 0")
+def _check_learning(a) -> None:
+    """The data recipe's ranges that depend on each other."""
     check_range(len(a.thrust_range) == 2 and -1 <= a.thrust_range[0] < a.thrust_range[1] <= 1, "data.thrust_range",
                 list(a.thrust_range), "[lo, hi] with -1 <= lo < hi <= 1 (fractions of drone.max_thrust)")
-    check_range(a.hold_seconds > 0, "data.hold_seconds", a.hold_seconds, "> 0 s")
     check_range(a.episode_seconds >= a.hold_seconds, "data.episode_seconds", a.episode_seconds, ">= data.hold_seconds")
-    check_range(a.region > 0, "data.region", a.region, "> 0 m")
-    check_range(a.bend_budget_deg is None or 0 < a.bend_budget_deg <= 180, "data.bend_budget_deg",
-                a.bend_budget_deg, "in (0, 180] deg, or null (no limit)")
-    check_range(0 <= a.deform_range <= 1, "data.deform_range", a.deform_range, "in [0, 1] x max_thrust")
-    check_range(a.deform_hold_seconds > 0, "data.deform_hold_seconds", a.deform_hold_seconds, "> 0 s")
-    check_range(a.workers >= 1, "data.workers", a.workers, ">= 1")
-    check_range(a.hover in ("rigid", "shape"), "data.hover", a.hover, "rigid or shape")
     check_range(a.hover == "rigid" or a.around_hover, "data.hover", a.hover,
                 "rigid unless data.around_hover = true (shape names the centre of a draw around hover)")
-    check_range(0 < a.validation_fraction < 1, "data.validation_fraction", a.validation_fraction, "in (0, 1)")
-    check_range(m.hidden >= 1 and m.blocks >= 1, "model.hidden/blocks", (m.hidden, m.blocks), ">= 1")
-    check_range(set(m.linear) <= {"d", "g", "h", "raw"}, "model.linear", list(m.linear), "a list of d, g, h, raw")
-    check_range(m.epochs >= 1, "model.epochs", m.epochs, ">= 1")
-    check_range(m.batch_size >= 1, "model.batch_size", m.batch_size, ">= 1")
-    check_range(m.lr > 0 and 0 < m.lr_decay <= 1 and m.lr_step >= 1, "model.lr/lr_decay/lr_step",
-                (m.lr, m.lr_decay, m.lr_step), "lr > 0, lr_decay in (0, 1], lr_step >= 1")
-    check_range(m.loss in ("l1", "l2"), "model.loss", m.loss, "l1 or l2")
-    check_range(m.horizon >= 1, "model.horizon", m.horizon, ">= 1 frame")
-    check_range(0 <= m.command_delay <= 100, "model.command_delay", m.command_delay, "0 to 100 control steps")
-    check_range(1 <= m.ensemble <= 32, "model.ensemble", m.ensemble, "1 to 32 nets per network")
 
 
 def _check_control(cfg) -> None:
-    """The controllers, the loss-of-control rule and the sensor noise."""
-    c, n = cfg.control, cfg.noise
-    for key in ("q_s", "q_e", "q_p", "r"):
-        check_range(getattr(c, key) > 0, f"control.{key}", getattr(c, key), "> 0")
-    check_range(c.velocity_scale >= 0, "control.velocity_scale", c.velocity_scale, ">= 0")
+    """The controllers' options that depend on the drone or on each other."""
+    c = cfg.control
     check_range(c.q_p_axes is None or (len(c.q_p_axes) == cfg.drone.dim and all(v > 0 for v in c.q_p_axes)),
                 "control.q_p_axes", c.q_p_axes, f"null or {cfg.drone.dim} numbers > 0 (one per axis of drone {cfg.drone.name})")
     n_e = 3 if cfg.drone.dim == 3 else 1
     check_range(c.q_e_axes is None or (len(c.q_e_axes) == n_e and all(v > 0 for v in c.q_e_axes)),
                 "control.q_e_axes", c.q_e_axes, f"null or {n_e} numbers > 0 (one per Euler angle of drone {cfg.drone.name})")
-    check_range(0 <= c.kp <= 1, "control.kp", c.kp, "in [0, 1]")
-    check_range(c.kd >= 0, "control.kd", c.kd, ">= 0")
-    check_range(c.waypoint_max is None or c.waypoint_max > 0, "control.waypoint_max", c.waypoint_max, "> 0 or null")
-    check_range(c.n >= 1, "control.n", c.n, ">= 1 control steps")
-    check_range(c.riccati in ("continuous", "discrete"), "control.riccati", c.riccati, "continuous or discrete")
-    check_range(c.bend_snr >= 0, "control.bend_snr", c.bend_snr, ">= 0 (0: every bend)")
-    check_range(c.q_s_alike >= 0, "control.q_s_alike", c.q_s_alike, ">= 0 (0: the paper's diagonal Q)")
-    check_range(c.r_alike >= 0, "control.r_alike", c.r_alike, ">= 0 (0: the paper's diagonal R)")
-    check_range(0 <= c.share_pull <= 1, "control.share_pull", c.share_pull, "0 to 1 (0: Algorithm 1 as written)")
     check_range(c.share_pull == 0 or not c.feedforward, "control.share_pull", c.share_pull,
                 "0 while control.feedforward is on (the feed-forward sets the operating thrust itself)")
-    check_range(0 < c.integral <= 1, "control.integral", c.integral, "in (0, 1] (1: Algorithm 1 as written)")
-    check_range(0 <= c.lowpass <= 1, "control.lowpass", c.lowpass, "in [0, 1] s (0: the state as read)")
-    check_range(c.delay_phase_deg is None or 0 < c.delay_phase_deg <= 180, "control.delay_phase_deg",
-                c.delay_phase_deg, "in (0, 180] deg or null")
     check_range(c.delay_phase_deg is None or cfg.model.command_delay > 0, "control.delay_phase_deg",
                 c.delay_phase_deg, "null while model.command_delay is 0 (there is no delay to bound)")
-    f = cfg.flight
-    check_range(f.max_tilt_deg is None or 0 < f.max_tilt_deg <= 180, "flight.max_tilt_deg", f.max_tilt_deg,
-                "null or in (0, 180] deg")
-    check_range(f.arena_margin is None or f.arena_margin > 0, "flight.arena_margin", f.arena_margin, "null or > 0 m")
-    nc = c.neural
-    check_range(nc.iterations >= 1 and nc.batch >= 1 and nc.horizon >= 1, "control.neural.iterations/batch/horizon",
-                (nc.iterations, nc.batch, nc.horizon), ">= 1 each")
-    check_range(nc.goal_radius > 0, "control.neural.goal_radius", nc.goal_radius, "> 0 m")
-    for key in ("angle_std_deg", "position_std", "angle_rate_std_deg", "velocity_std",
-                "rotor_std", "delay"):
-        check_range(getattr(n, key) >= 0, f"noise.{key}", getattr(n, key), ">= 0")
-
-
-def _check_discrepancy(q) -> None:
-    """The discrepancy workflow and its recorder."""
-    check_range(q.horizon > 0 and q.stride > 0 and q.history >= 0, "discrepancy.horizon/stride/history",
-                (q.horizon, q.stride, q.history), "horizon > 0 s, stride > 0 s, history >= 0 s")
-    check_range(q.start_average >= 1, "discrepancy.start_average", q.start_average, ">= 1 rows")
-    check_range(0 < q.holdout < 1, "discrepancy.holdout", q.holdout, "in (0, 1)")
-    check_range(0 < q.alpha < 1, "discrepancy.alpha", q.alpha, "in (0, 1)")
-    check_range(q.min_gain >= 0 and q.screen >= 1 and q.max_effects >= 1, "discrepancy.min_gain/screen/max_effects",
-                (q.min_gain, q.screen, q.max_effects), "min_gain >= 0, screen >= 1, max_effects >= 1")
-    check_range(q.floor_flights is None or q.floor_flights >= 1, "discrepancy.floor_flights", q.floor_flights,
-                ">= 1 or null (as many as the unexplained test needs)")
-    check_range(0 < q.explained_enough <= 1, "discrepancy.explained_enough", q.explained_enough, "in (0, 1]")
-    check_range(q.unexplained_ratio >= 1 and q.second_effect_ratio >= 1, "discrepancy.unexplained_ratio/second_effect_ratio",
-                (q.unexplained_ratio, q.second_effect_ratio), ">= 1 each (multiples of the noise floor)")
-    r = q.record
-    check_range(r.flights >= 1 and r.seconds > 0, "discrepancy.record.flights/seconds", (r.flights, r.seconds),
-                "flights >= 1, seconds > 0")
-    check_range(r.amplitude >= 0, "discrepancy.record.amplitude", r.amplitude, ">= 0")

@@ -5,35 +5,31 @@ defaults into the config, refuses a key the dataclass lacks or a value of the wr
 ``OmegaConf.to_object`` at the runner boundary (sdexp.eval.run.typed) hands the runner an instance,
 whose ``__post_init__`` checks the ranges.
 
-A field's ``metadata`` says what is allowed beyond its type: ``range`` (a predicate and its
-text, applied to every number of a list or mapping) and ``names`` (every value must name one
+A field's ``metadata`` says what is allowed beyond its type: ``range`` (sdexp.ranges: a
+predicate and its text, applied to every number of a list or mapping) and ``names`` (every value must name one
 of those: an option of that config group, a drone or an experiment, or with "controller" a
 registered controller; checked where the configs and the registry are known, before the
 conversion: sdexp.eval.run.check_names).
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 
 from sdexp.config import ELEMENTS
 from sdexp.errors import UserError
+from sdexp.ranges import check_fields, param, ranged
 
 PREFIX = "experiment.params."
 
 
 def _param(default, ok: Callable[[Any], bool] | None = None, allowed: str = "", **metadata) -> Any:
-    """A field with ``default`` (a list or mapping is copied per instance) and its range."""
-    if ok is not None:
-        metadata["range"] = (ok, allowed)
-    if isinstance(default, (list, dict)) or dataclasses.is_dataclass(default):
-        return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
-    return field(default=default, metadata=metadata)
+    """A field with ``default`` and its range (sdexp.ranges: the one declaration the config and
+    the effects use too)."""
+    return param(default, ranged(ok, allowed, **metadata) if ok is not None else metadata)
 
 
 def positive(default):
@@ -54,28 +50,12 @@ def controller_choice(default):
     return _param(default, names="controller")
 
 
-def _leaves(value) -> list:
-    """The numbers of a param: itself, a list's items, or (a mapping of lists, per element type
-    or dimension) all of theirs."""
-    if isinstance(value, dict):
-        return [v for sub in value.values() for v in _leaves(sub)]
-    return list(value) if isinstance(value, list) else [value]
-
-
 @dataclass
 class Params:
     """What every experiment's params share: range checks on construction (``to_object``)."""
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if "range" not in f.metadata or value is None:
-                continue
-            ok, allowed = f.metadata["range"]
-            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and ok(v)
-                       for v in _leaves(value)):
-                raise UserError(f"{PREFIX}{f.name} = {value!r} is out of range: allowed {allowed}"
-                                + (" each" if isinstance(value, (list, dict)) else ""))
+        check_fields(self, type(self), PREFIX)
         self.check()
 
     def check(self) -> None:

@@ -40,6 +40,7 @@ from typing import Any, Callable
 import numpy as np
 
 from sdexp.errors import UserError
+from sdexp.ranges import between, choices, nonnegative, positive
 
 
 @dataclass
@@ -84,6 +85,14 @@ class Effect:
     # the discrepancy bench's hidden strengths (sdexp.discrepancy.bench): (constructor argument,
     # moderate, strong); a direction, a rotor or a point is drawn per scenario there
     bench_strengths: tuple | None = None
+    # {constructor argument: its range (sdexp.ranges, as the config's fields declare theirs)},
+    # checked by check_params in the constructor; what depends on the drone is checked in setup
+    ranges: dict = {}
+
+    def check_params(self, **values) -> None:
+        """Each of ``values`` within the range its class declares for it."""
+        for key, value in values.items():
+            self.ranges[key]["range"].check(f"sim.effects: {self.name}.{key}", value)
 
     @classmethod
     def zero(cls, dim: int) -> dict | None:
@@ -197,6 +206,7 @@ class MotorLag(Effect):
 
     fit_params = {"tau": (0.0, 0.3, 0.03)}   # s: slower than any multirotor motor and propeller
     bench_strengths = ("tau", 0.06, 0.12)
+    ranges = {"tau": nonnegative("s")}
 
     @classmethod
     def zero(cls, dim):
@@ -209,8 +219,7 @@ class MotorLag(Effect):
         return spec
 
     def __init__(self, tau: float = 0.05):
-        if tau < 0:
-            raise UserError(f"sim.effects: motor_lag.tau = {tau} must be >= 0 s")
+        self.check_params(tau=tau)
         self.tau = float(tau)
 
     def reset(self, sim) -> None:
@@ -233,6 +242,7 @@ class ActuationDelay(Effect):
 
     fit_params = {"delay": (0.0, 0.3, 0.02)}
     bench_strengths = ("delay", 0.02, 0.05)
+    ranges = {"delay": nonnegative("s")}
 
     @classmethod
     def zero(cls, dim):
@@ -246,8 +256,7 @@ class ActuationDelay(Effect):
         return spec
 
     def __init__(self, delay: float = 0.02):
-        if delay < 0:
-            raise UserError(f"sim.effects: actuation_delay.delay = {delay} must be >= 0 s")
+        self.check_params(delay=delay)
         self.delay = float(delay)
 
     def reset(self, sim) -> None:
@@ -270,6 +279,7 @@ class ThrustLoss(Effect):
     description = "One rotor produces a fraction less thrust than commanded (worn or damaged propeller)."
     equation = "T_r = (1 - eta) T_cmd,r for the affected rotor r"
     bench_strengths = ("fraction", 0.15, 0.3)
+    ranges = {"fraction": between(0, 1, "[)")}
 
     @classmethod
     def zero(cls, dim):
@@ -283,8 +293,7 @@ class ThrustLoss(Effect):
                        options=list(range(drone.num_rotors)))
 
     def __init__(self, rotor: int = 0, fraction: float = 0.2):
-        if not 0 <= fraction < 1:
-            raise UserError(f"sim.effects: thrust_loss.fraction = {fraction} must be in [0, 1)")
+        self.check_params(fraction=fraction)
         self.rotor, self.fraction = int(rotor), float(fraction)
 
     def setup(self, sim) -> None:
@@ -303,6 +312,7 @@ class GroundEffect(Effect):
     description = "A rotor close to the ground makes more thrust (Cheeseman-Bennett image-vortex model)."
     equation = "T = T_cmd / (1 - (R / 4h)^2), h = rotor height above the ground, clamped at h >= R/2"
     bench_strengths = ("radius", 1.0, 1.6)
+    ranges = {"radius": nonnegative("m")}
 
     @classmethod
     def zero(cls, dim):
@@ -315,8 +325,7 @@ class GroundEffect(Effect):
                        lambda th, o: {"radius": float(np.sqrt(max(th[0], 0.0)))})
 
     def __init__(self, radius: float = 0.5, ground: float = 0.0):
-        if radius < 0:
-            raise UserError(f"sim.effects: ground_effect.radius = {radius} must be >= 0 m")
+        self.check_params(radius=radius)
         self.radius, self.ground = float(radius), float(ground)
 
     def actuate(self, thrust, sim):
@@ -409,6 +418,7 @@ class RotorDrag(Effect):
     description = ("Blade flapping and induced drag: each rotor resists its in-plane velocity, linearly "
                    "(the standard multirotor drag model).")
     equation = "F_r = -k (v_r - (v_r . n_r) n_r), v_r the rotor patch velocity, spread over the patch"
+    ranges = {"k": nonnegative("N s/m (drag resists motion)")}
 
     fit_params = {"k": (0.0, 5.0, 0.1)}   # N s/m; a drag never pushes
     bench_strengths = ("k", 0.6, 1.5)
@@ -418,8 +428,7 @@ class RotorDrag(Effect):
         return {"k": 0.0}
 
     def __init__(self, k: float = 0.1):
-        if k < 0:
-            raise UserError(f"sim.effects: rotor_drag.k = {k} must be >= 0 N s/m (drag resists motion)")
+        self.check_params(k=k)
         self.k = float(k)
 
     def body_forces(self, sim, f):
@@ -437,6 +446,7 @@ class QuadraticDrag(Effect):
     name = "quadratic_drag"
     description = "Air drag on the surface, quadratic in the velocity relative to still air, per area-weighted vertex."
     equation = "f_i = -c a_i |v_i| v_i, c = rho C_d / 2 (N s^2/m^4), a_i the vertex's share of one side of the surface"
+    ranges = {"c": nonnegative()}
 
     fit_params = {"c": (0.0, 2.0, 0.03)}  # rho C_d / 2 of a flat plate is ~0.7; never negative
     bench_strengths = ("c", 0.3, 0.7)
@@ -446,8 +456,7 @@ class QuadraticDrag(Effect):
         return {"c": 0.0}
 
     def __init__(self, c: float = 0.05):
-        if c < 0:
-            raise UserError(f"sim.effects: quadratic_drag.c = {c} must be >= 0")
+        self.check_params(c=c)
         self.c = float(c)
 
     def setup(self, sim) -> None:
@@ -474,6 +483,7 @@ class Wind(QuadraticDrag):
                    "low-order form of the Dryden turbulence model, redrawn for every flight).")
     equation = ("f_i = -c a_i |v_i - w(t)| (v_i - w(t)), w(t) = w + g sin(2 pi f t) + n(t), "
                 "dn = -n / T dt + s sqrt(2 / T) dW per axis (std s, correlation time T)")
+    ranges = {**QuadraticDrag.ranges, "gust_std": nonnegative("m/s"), "gust_time": positive("s")}
 
     CHUNK = 1024   # gust samples drawn at a time: the sequence does not depend on how far a run looks
     bench_strengths = ("velocity", 1.5, 3.0)   # m/s, in a horizontal direction drawn per scenario
@@ -504,9 +514,7 @@ class Wind(QuadraticDrag):
     def __init__(self, velocity: Any = (1.0, 0.0, 0.0), c: float = 0.05, gust: Any = None,
                  gust_freq: float = 0.0, gust_std: float = 0.0, gust_time: float = 2.0):
         super().__init__(c)
-        if gust_std < 0 or gust_time <= 0:
-            raise UserError(f"sim.effects: wind.gust_std = {gust_std} must be >= 0 m/s and "
-                            f"wind.gust_time = {gust_time} > 0 s")
+        self.check_params(gust_std=gust_std, gust_time=gust_time)
         self.velocity = np.asarray(velocity, dtype=float)
         self.gust = None if gust is None else np.asarray(gust, dtype=float)
         self.gust_freq = float(gust_freq)
@@ -551,6 +559,7 @@ class Payload(Effect):
     description = "An extra point mass carried at an offset (battery, camera), lumped on the nearest vertices."
     equation = "m_i += m / n for the n vertices within radius of the rest point (at least the nearest)"
     bench_strengths = ("mass", 0.1, 0.25)   # kg, at a point drawn near the centre of mass
+    ranges = {"mass": nonnegative("kg")}
 
     @classmethod
     def zero(cls, dim):
@@ -580,8 +589,7 @@ class Payload(Effect):
                        anchor=[0.1] + [0.0] * k, check=check)
 
     def __init__(self, mass: float = 0.1, point: Any = None, radius: float = 0.3):
-        if mass < 0:
-            raise UserError(f"sim.effects: payload.mass = {mass} must be >= 0 kg")
+        self.check_params(mass=mass)
         self.mass, self.point, self.radius = float(mass), point, float(radius)
 
     def modify_model(self, fem, damping, drone):
@@ -600,6 +608,7 @@ class StiffnessScale(Effect):
     description = "The material is stiffer or softer than nominal (Young's modulus times a factor)."
     equation = "E = k E_nominal (both Lame parameters scale)"
     bench_strengths = ("scale", 0.6, 1.8)
+    ranges = {"scale": positive()}
 
     @classmethod
     def zero(cls, dim):
@@ -614,8 +623,7 @@ class StiffnessScale(Effect):
                        scan=[[2.0 ** -(j / 4) - 1.0] for j in (-4, -3, -2, -1, 1, 2, 3, 4)])
 
     def __init__(self, scale: float = 1.0):
-        if scale <= 0:
-            raise UserError(f"sim.effects: stiffness_scale.scale = {scale} must be > 0")
+        self.check_params(scale=scale)
         self.scale = float(scale)
 
     def modify_model(self, fem, damping, drone):
@@ -627,6 +635,7 @@ class DampingScale(Effect):
     description = "The material (and air) dissipates more or less than nominal: mass-proportional damping times a factor."
     equation = "c = k c_nominal in m_i dv_i/dt = f_i - c m_i v_i"
     bench_strengths = ("scale", 0.5, 2.0)
+    ranges = {"scale": nonnegative()}
 
     @classmethod
     def zero(cls, dim):
@@ -637,8 +646,7 @@ class DampingScale(Effect):
         return FitSpec(["excess"], [0.3], [-1.0], [9.0], lambda th, o: {"scale": float(max(1.0 + th[0], 0.0))})
 
     def __init__(self, scale: float = 1.0):
-        if scale < 0:
-            raise UserError(f"sim.effects: damping_scale.scale = {scale} must be >= 0")
+        self.check_params(scale=scale)
         self.scale = float(scale)
 
     def modify_model(self, fem, damping, drone):
@@ -654,6 +662,7 @@ class ImuBias(Effect):
     equation = "rot' = exp([b]x) rot (2D: theta + b); omega' = omega + b; pos' = pos + b; vel' = vel + b"
 
     CHANNELS = ("rot", "omega", "pos", "vel")
+    ranges = {"channel": choices(CHANNELS)}
     bench_strengths = ("value", 0.02, 0.05)   # rad: an attitude tilt in a direction drawn per scenario
 
     @classmethod
@@ -671,8 +680,7 @@ class ImuBias(Effect):
                        lambda th, o: {"channel": "rot", "value": value(th)})
 
     def __init__(self, channel: str = "rot", value: Any = (0.02, 0.0, 0.0), imus: Any = None):
-        if channel not in self.CHANNELS:
-            raise UserError(f"sim.effects: imu_bias.channel = {channel!r}: choose one of {list(self.CHANNELS)}")
+        self.check_params(channel=channel)
         self.channel, self.imus = channel, imus
         self.value = np.asarray(value, dtype=float)
 
