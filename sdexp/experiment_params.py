@@ -21,7 +21,7 @@ from hydra.core.config_store import ConfigStore
 
 from sdexp.config import ELEMENTS
 from sdexp.errors import UserError
-from sdexp.ranges import check_fields, param, ranged
+from sdexp.ranges import check_fields, nonnegative, param, positive, ranged
 
 PREFIX = "experiment.params."
 
@@ -30,14 +30,6 @@ def _param(default, ok: Callable[[Any], bool] | None = None, allowed: str = "", 
     """A field with ``default`` and its range (sdexp.ranges: the one declaration the config and
     the effects use too)."""
     return param(default, ranged(ok, allowed, **metadata) if ok is not None else metadata)
-
-
-def positive(default):
-    return _param(default, lambda v: v > 0, "> 0")
-
-
-def nonnegative(default):
-    return _param(default, lambda v: v >= 0, ">= 0")
 
 
 def drone_choice(default):
@@ -66,7 +58,7 @@ class Params:
 
 @dataclass
 class SotaParams(Params):
-    seconds: float = positive(20.0)
+    seconds: float = param(20.0, positive())
     start: List[float] = _param([0.0, 0.0, 0.0])
     target: List[float] = _param([3.0, 3.0, 3.0])
     controllers: List[str] = controller_choice(["ours", "rigid_lqr", "geometry_lqr", "neural"])
@@ -82,7 +74,7 @@ class SotaParams(Params):
 
 @dataclass
 class NsweepParams(Params):
-    seconds: float = positive(20.0)
+    seconds: float = param(20.0, positive())
     start: List[float] = _param([0.0, 0.0, 0.0])
     target: List[float] = _param([3.0, 3.0, 3.0])
     n_values: List[int] = _param([1, 2, 5, 10, 20, 30, 40, 50, 100], lambda v: v > 0, "> 0")
@@ -90,30 +82,30 @@ class NsweepParams(Params):
 
 @dataclass
 class AblationFixedPointParams(Params):
-    seconds: float = positive(10.0)
-    distance: float = positive(2.0)
+    seconds: float = param(10.0, positive())
+    distance: float = param(2.0, positive())
     noise_levels: List[float] = _param([0.0, 0.1, 0.2, 0.3, 0.4, 0.8], lambda v: v >= 0, ">= 0")
-    trials: int = positive(4096)        # random (s, u) tried before the gradient descent
-    descent_steps: int = positive(2000)
+    trials: int = param(4096, positive())        # random (s, u) tried before the gradient descent
+    descent_steps: int = param(2000, positive())
 
 
 @dataclass
 class HoverDeformParams(Params):
     angle_deg: float = 15.0             # petal raise (the paper does not state it)
-    settle_seconds: float = nonnegative(2.0)   # after release; the paper measures "ever since the initial drop"
-    ramp_seconds: float = positive(2.0)
-    hold_seconds: float = nonnegative(3.0)
+    settle_seconds: float = param(2.0, nonnegative())   # after release; the paper measures "ever since the initial drop"
+    ramp_seconds: float = param(2.0, positive())
+    hold_seconds: float = param(3.0, nonnegative())
     animate: bool = True                # also hover_deform.mp4 (the deforming drone)
     paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
 
 
 @dataclass
 class ObstacleParams(Params):
-    seconds: float = positive(15.0)
+    seconds: float = param(15.0, positive())
     velocity: List[float] = _param([0.4, 0.2, 0.0])   # m/s, the goal position moves with it
     fold_deg: float = 75.0              # the paper's star raised its wings by over 73 deg
-    fold_start: float = nonnegative(1.0)
-    fold_seconds: float = positive(2.0)
+    fold_start: float = param(1.0, nonnegative())
+    fold_seconds: float = param(2.0, positive())
     animate: bool = True                # also obstacle.mp4 (the drone and the blocks)
     paraview: bool = False   # true: also <name>_vtu/<name>.pvd, the mesh per frame for ParaView (about 3 MB a second)
 
@@ -132,19 +124,19 @@ class FleetParams(Params):
     # the data rule: samples = samples_per_channel x the drone's state channels (n_s + n_e + dim:
     # bends, attitude, position; each comes with its rate), at least min_samples (docs/results.md
     # "Fleet" has the learning curve behind the numbers); null: data.samples for every drone
-    samples_per_channel: Optional[int] = positive(1500)
-    min_samples: int = positive(8000)
-    hover_seconds: float = positive(10.0)
-    reach_seconds: float = positive(10.0)
-    reach_lengths: float = positive(1.0)    # the trip, diagonal, in body lengths (the largest size)
-    speed: float = positive(0.5)            # m/s, commanded along +x
-    ramp_seconds: float = nonnegative(2.0)  # the goal velocity grows from 0 to speed, ...
-    velocity_seconds: float = positive(10.0)   # ... then is held this long
+    samples_per_channel: Optional[int] = param(1500, positive())
+    min_samples: int = param(8000, positive())
+    hover_seconds: float = param(10.0, positive())
+    reach_seconds: float = param(10.0, positive())
+    reach_lengths: float = param(1.0, positive())    # the trip, diagonal, in body lengths (the largest size)
+    speed: float = param(0.5, positive())            # m/s, commanded along +x
+    ramp_seconds: float = param(2.0, nonnegative())  # the goal velocity grows from 0 to speed, ...
+    velocity_seconds: float = param(10.0, positive())   # ... then is held this long
     deform_deg: float = 15.0                # the odd sensors' bend target (1, 3, ...), held, then released
-    settle_seconds: float = nonnegative(2.0)
-    deform_ramp_seconds: float = positive(1.0)
-    deform_hold_seconds: float = nonnegative(3.0)
-    workers: int = positive(2)              # (drone, seed) jobs side by side, one core each
+    settle_seconds: float = param(2.0, nonnegative())
+    deform_ramp_seconds: float = param(1.0, positive())
+    deform_hold_seconds: float = param(3.0, nonnegative())
+    workers: int = param(2, positive())              # (drone, seed) jobs side by side, one core each
 
     def check(self) -> None:
         for key, value, allowed in (("tasks", self.tasks, FLEET_TASKS),
@@ -159,22 +151,22 @@ class FleetParams(Params):
 
 @dataclass
 class ModelTestParams(Params):
-    rollout_seconds: float = positive(70.0)   # test flight length; simulated when no held-out episode is this long
-    relinearize_every: int = positive(5)      # control steps between Jacobians (5 = 20 Hz)
-    horizon_seconds: float = positive(1.0)    # the short-horizon rollouts restart from the truth this often
-    plot_seconds: float = positive(5.0)       # window of the acceleration overlay
-    test_seed_offset: int = nonnegative(10000)  # the test flight's seed is seed + this (unseen thrust draws)
-    flight_attempts: int = positive(5)        # a flight the simulator fails is retried with the next seed; the longest is kept
+    rollout_seconds: float = param(70.0, positive())   # test flight length; simulated when no held-out episode is this long
+    relinearize_every: int = param(5, positive())      # control steps between Jacobians (5 = 20 Hz)
+    horizon_seconds: float = param(1.0, positive())    # the short-horizon rollouts restart from the truth this often
+    plot_seconds: float = param(5.0, positive())       # window of the acceleration overlay
+    test_seed_offset: int = param(10000, nonnegative())  # the test flight's seed is seed + this (unseen thrust draws)
+    flight_attempts: int = param(5, positive())        # a flight the simulator fails is retried with the next seed; the longest is kept
 
 
 @dataclass
 class AblationDecompositionParams(Params):
-    raw_hidden: Optional[int] = positive(None)   # width of the undecomposed network; null = model.hidden
+    raw_hidden: Optional[int] = param(None, positive())   # width of the undecomposed network; null = model.hidden
 
 
 @dataclass
 class BenchControlParams(Params):
-    samples: int = positive(200)
+    samples: int = param(200, positive())
 
 
 # ------------------------------------------------------------------ the simulator's experiments
@@ -202,33 +194,33 @@ class ValidateFemParams(Params):
     layers: Dict[str, Dict[str, List[int]]] = _param(   # elements through the thickness, per element type and dimension
         {"linear": {"2d": [1, 2, 4, 8], "3d": [1, 2, 3, 4, 6]}, "quadratic": {"2d": [1, 2, 4], "3d": [1, 2, 3]}},
         lambda v: v > 0, "> 0")
-    drone_edge_length: Optional[float] = positive(0.25)   # the flower's default mesh.edge_length
+    drone_edge_length: Optional[float] = param(0.25, positive())   # the flower's default mesh.edge_length
     beam: BeamParams = _param(BeamParams())
     drones: Optional[List[str]] = drone_choice(None)   # every drone (null) or a list: default mesh vs the converged body
     refine: Dict[str, List[float]] = _param(REFINE, lambda v: v > 0, "> 0")   # the converged reference: meshes this much finer
-    bend_load: float = nonnegative(2.0)          # N on each outer rotor, over hover thrust
+    bend_load: float = param(2.0, nonnegative())          # N on each outer rotor, over hover thrust
 
 
 @dataclass
 class BenchSimParams(Params):
     drones: Optional[List[str]] = drone_choice(None)   # null = all twelve
     elements: List[str] = _param(list(ELEMENTS))
-    seconds: float = positive(3.0)               # simulated seconds per drone
+    seconds: float = param(3.0, positive())               # simulated seconds per drone
     scaling_drone: Optional[str] = drone_choice("flower")   # null = no refinement series
     scaling_edges: Dict[str, List[float]] = _param(   # mesh.edge_length of the series, per element type
         {"linear": [0.35, 0.25, 0.15, 0.1, 0.07],      # about 1.3k, 2k, 5k, 12k and 45k tets
          "quadratic": [0.6, 0.5, 0.35, 0.25, 0.15]}, lambda v: v > 0, "> 0")
-    scaling_seconds: float = positive(1.0)
+    scaling_seconds: float = param(1.0, positive())
     resolution_factors: List[float] = _param([1.0, 1.4, 2.0])  # every drone's quadratic mesh at edge_length x these:
                                   # accuracy and substeps (no timing), the evidence behind each default resolution
-    bend_load: float = nonnegative(2.0)   # N: the outer rotors' push (no net lift or tilting torque) of the accuracy load
+    bend_load: float = param(2.0, nonnegative())   # N: the outer rotors' push (no net lift or tilting torque) of the accuracy load
     refine: Dict[str, List[float]] = _param(REFINE, lambda v: v > 0, "> 0")   # the converged reference: quadratic meshes at edge_length / these
     # sim.precision and sim.mass_scaling on one drone's default quadratic mesh (null = none): the force
     # kernel and the whole step timed with the variants alternated, a noise-free flight and an
     # undamped free vibration of float32 against float64, the modes that scaling moves
     variants_drone: Optional[str] = drone_choice("flower")
-    variants_seconds: float = positive(3.0)      # simulated seconds of each variant's step timing
-    deviation_seconds: float = positive(5.0)     # the noise-free float32 / float64 flight
+    variants_seconds: float = param(3.0, positive())      # simulated seconds of each variant's step timing
+    deviation_seconds: float = param(5.0, positive())     # the noise-free float32 / float64 flight
     mass_scaling: float = _param(0.005, lambda v: 0 < v <= 0.1, "in (0, 0.1]")   # the scaled variants' budget
 
     def check(self) -> None:
@@ -244,7 +236,7 @@ class GalleryParams(Params):
 @dataclass
 class BenchSweepParams(Params):
     experiment: str = _param("ablation_fixed_point", names="experiment")   # the swept experiment: the rod's cold run is about a minute
-    seeds: int = nonnegative(5)
+    seeds: int = param(5, nonnegative())
     jobs: List[int] = _param([1, 2], lambda v: v > 0, "> 0")   # jobs side by side; the first is the baseline of the speed-up
     overrides: List[str] = _param([])   # extra overrides for every job, e.g. ["drone=rod"]
 
@@ -265,14 +257,14 @@ class DiscrepancyParams(Params):
 class DiscrepancyBenchParams(Params):
     effects: Optional[List[str]] = None    # null = the whole library
     levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (each effect's bench_strengths)
-    seeds: int = nonnegative(2)            # per effect and strength
-    nulls: int = nonnegative(20)
+    seeds: int = param(2, nonnegative())            # per effect and strength
+    nulls: int = param(20, nonnegative())
     combos: bool = True
-    variants: int = nonnegative(1)         # per seed: every outside-the-library effect with a fair library
+    variants: int = param(1, nonnegative())         # per seed: every outside-the-library effect with a fair library
                                            # answer (gusty wind at two strengths, per-rotor lags, a hanging weight)
-    unmodelled: int = nonnegative(1)       # per seed: every outside-the-library effect without one (six kinds,
+    unmodelled: int = param(1, nonnegative())       # per seed: every outside-the-library effect without one (six kinds,
                                            # sdexp.discrepancy.bench_effects): the honest answer is unexplained
-    workers: int = positive(2)
+    workers: int = param(2, positive())
     rescore: bool = False                  # true: recompute the gap columns of an earlier run in the same folder
     scenario_dir: Optional[str] = None     # where each scenario's logs and reports go; null = <run dir>/scenarios
 

@@ -36,7 +36,7 @@ class Range:
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and self.ok(v)
             for v in items)
         if not good:
-            each = " each" if isinstance(value, (list, tuple, dict)) or _is_container(value) else ""
+            each = " each" if _is_container(value) else ""
             raise UserError(f"{key} = {_plain(value)!r} is out of range: allowed {self.allowed}{each}")
 
 
