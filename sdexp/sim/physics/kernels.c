@@ -19,7 +19,7 @@ static int omp_get_thread_num(void) { return 0; }
 #endif
 #define B 32  /* elements per SIMD block */
 #define VT 64 /* vertices per tile of the velocity update */
-#define POLAR_ITERATIONS 2  /* as fem.POLAR_ITERATIONS */
+#define POLAR_ITERATIONS 2  /* as reference.POLAR_ITERATIONS */
 /* One body and one control step of it; native.Step mirrors this layout. Arrays are C-ordered
  * (rows: vertices or elements), dim = 2 or 3 columns; in 3D el, Bm, vol and q are blocked
  * (forces_impl, p2_forces_blocked). nodes: per element (4 / 3 linear, 10 / 6 quadratic).
