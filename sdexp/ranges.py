@@ -92,14 +92,12 @@ def _is_container(value) -> bool:
 
 
 def _plain(value):
-    """An OmegaConf container as the plain list or dict a user wrote."""
-    if isinstance(value, (list, tuple, dict, str, int, float, bool)) or value is None:
-        return value
-    try:
-        from omegaconf import OmegaConf
-        return OmegaConf.to_container(value)
-    except Exception:
-        return value
+    """A config container (an OmegaConf list or mapping) as the plain list or dict a user wrote."""
+    if hasattr(value, "items") and not isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if _is_container(value) and not isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
 
 
 def _leaves(value) -> list:
@@ -117,10 +115,7 @@ def check_fields(node, cls, prefix: str = "") -> None:
     the OmegaConf node of one), and the fields of the dataclasses nested in it."""
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        try:
-            value = getattr(node, f.name)
-        except Exception:   # a missing (???) value: check_complete names it
-            continue
+        value = getattr(node, f.name)   # no missing (???) value here: validate's check_complete came first
         rng = f.metadata.get("range")
         if rng is not None:
             rng.check(f"{prefix}{f.name}", value)
