@@ -227,6 +227,10 @@ class ControlConfig:
     kd: float = param(0.0001, nonnegative())
     waypoint_max: Optional[float] = param(None, positive("or null"))   # ours: m, the waypoint's position offset at most this long
                                            # (a far goal approached steadily; null: kp alone, the paper)
+    approach_speed: Optional[float] = param(None, positive("m/s or null"))   # ours, with waypoint_max: a goal
+                                           # further than 2 waypoint_max is approached at this speed (the
+                                           # waypoint's velocity points at it; ramps from 0 at waypoint_max).
+                                           # null: the waypoint's velocity is the goal's (control/relinearizing.py)
     n: int = param(10, at_least(1, "control steps"))   # relinearise every n control steps (100/n Hz)
     relinearize: bool = True        # false: linearise once at a given operating point
     feedforward: bool = False       # ours: thrust that holds the goal's bends (not in the paper; relinearizing.py)

@@ -96,7 +96,7 @@ class RelinearizingLQR:
                  dt: float | None = None, feedforward: bool = False, waypoint_max: float | None = None,
                  regulated: np.ndarray | None = None, q_alike: float = 0.0, velocity_scale: float = 1.0,
                  max_rate: float | None = None, r_alike: float = 0.0, share_pull: float = 0.0,
-                 integral: float = 1.0):
+                 integral: float = 1.0, approach_speed: float | None = None):
         if n < 1:
             raise ValueError("n must be >= 1")
         if feedforward and not relinearize:
@@ -113,6 +113,9 @@ class RelinearizingLQR:
         if waypoint_max is not None and not waypoint_max > 0:
             raise ValueError(f"waypoint_max = {waypoint_max!r}: allowed > 0 or None")
         self.waypoint_max = waypoint_max
+        if approach_speed is not None and (not approach_speed > 0 or waypoint_max is None):
+            raise ValueError(f"approach_speed = {approach_speed!r}: allowed > 0 (with waypoint_max) or None")
+        self.approach_speed = approach_speed
         # the velocity rows of f: zero at rest, what equilibrium_thrust solves for
         self._rates = np.concatenate([np.arange(dyn.n)[dyn.slices[k]] for k in ("s_dot", "e_dot", "p_dot")])
         self._rigid = np.concatenate([np.arange(dyn.n)[dyn.slices[k]] for k in ("e_dot", "p_dot")])
@@ -207,6 +210,13 @@ class RelinearizingLQR:
             u = np.clip(u + np.linalg.lstsq(B[rows], -f0[rows], rcond=None)[0], -self.max_thrust, self.max_thrust)
         return u
 
+    def approach_velocity(self, clipped: np.ndarray, length: float) -> np.ndarray:
+        """The waypoint's velocity toward a goal ``length`` away (beyond waypoint_max, the offset
+        ``clipped`` to it): approach_speed along it from 2 waypoint_max on, ramping from zero at
+        waypoint_max, so that within waypoint_max the waypoint is as without."""
+        w = self.waypoint_max
+        return self.approach_speed * min(1.0, (length - w) / w) * clipped / w
+
     def act(self, t: float, state: State) -> np.ndarray:
         x = self.dyn.predict(state.x, self.sent) if self.sent else state.x
         if self.k % self.n == 0:
@@ -227,6 +237,8 @@ class RelinearizingLQR:
                 length = float(np.linalg.norm(offset[p]))
                 if length > self.waypoint_max:
                     offset[p] *= self.waypoint_max / length
+                    if self.approach_speed is not None:
+                        offset[self.dyn.slices["p_dot"]] += self.approach_velocity(offset[p], length)
             self.x_wp = x + offset + self.kd * x_dot
             if self.feedforward:
                 u_int = np.zeros_like(self.u) if self.u_ff is None else self._keep(self.u_int, self.u - self.u_ff)

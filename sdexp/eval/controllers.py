@@ -49,7 +49,8 @@ def ours(cfg, dyn, max_thrust: float, **kw) -> RelinearizingLQR:
                             regulated=None if len(regulated) == len(q) else regulated,
                             q_alike=float(c.q_s_alike), velocity_scale=float(c.velocity_scale),
                             max_rate=max_feedback_rate(cfg), r_alike=float(c.r_alike),
-                            share_pull=float(c.share_pull), integral=float(c.integral), **kw)
+                            share_pull=float(c.share_pull), integral=float(c.integral),
+                            approach_speed=c.approach_speed, **kw)
 
 
 def max_feedback_rate(cfg) -> float | None:

@@ -327,7 +327,8 @@ def test_integral_keeps_that_share_of_what_the_feedback_added_and_still_removes_
 
 def test_waypoint_max_bounds_the_position_offset_of_the_waypoint_and_nothing_else():
     """A goal 10 m away with kp = 1: the waypoint is 0.5 m toward it; the bends' and rates' parts
-    of the waypoint are kp's as before; a near goal is not touched."""
+    of the waypoint are kp's as before; a near goal is not touched; with approach_speed the
+    waypoint's velocity points at a far goal."""
     class Linear:   # x_dot = A x + B u on the (s, s_dot, e, e_dot, p, p_dot) layout of a 2D drone, n_s = 1
         n_s, n_e, dim, m, n = 1, 1, 2, 2, 8
         slices = {"s": slice(0, 1), "s_dot": slice(1, 2), "e": slice(2, 3), "e_dot": slice(3, 4),
@@ -340,15 +341,24 @@ def test_waypoint_max_bounds_the_position_offset_of_the_waypoint_and_nothing_els
             B[[1, 3, 6, 7], :] = [[1, -1], [1, -1], [0.1, 0.1], [1, 1]]
             return A @ x + B @ u, A, B
 
-    for goal, expect in (([10.0, 0.0], [0.5, 0.0]), ([0.3, 0.0], [0.3, 0.0])):
-        ctl = RelinearizingLQR(Linear(), np.ones(8), 1.0, kp=1.0, kd=0.0, n=1, max_thrust=10.0, waypoint_max=0.5)
+    # approach_speed 2: the waypoint's velocity points at a far goal, full from 2 waypoint_max (1 m)
+    # on, half at 0.75 m, none within 0.5 m
+    cases = [([10.0, 0.0], None, [0.5, 0.0], [0.0, 0.0]), ([0.3, 0.0], None, [0.3, 0.0], [0.0, 0.0]),
+             ([0.0, 10.0], 2.0, [0.0, 0.5], [0.0, 2.0]), ([0.75, 0.0], 2.0, [0.5, 0.0], [1.0, 0.0]),
+             ([0.3, 0.0], 2.0, [0.3, 0.0], [0.0, 0.0])]
+    for goal, speed, expect, velocity in cases:
+        ctl = RelinearizingLQR(Linear(), np.ones(8), 1.0, kp=1.0, kd=0.0, n=1, max_thrust=10.0, waypoint_max=0.5,
+                               approach_speed=speed)
         ctl.reset(Task(start=[0.0, 0.0], target=goal, seconds=1.0, n_s=1, bend_times=[0.0], bend_targets=[[0.2]]))
         ctl.act(0.0, State(s=np.zeros(1), e=np.zeros(1), p=np.zeros(2), s_dot=np.zeros(1), e_dot=np.zeros(1),
                            p_dot=np.zeros(2)))
         np.testing.assert_allclose(ctl.x_wp[4:6], expect)
+        np.testing.assert_allclose(ctl.x_wp[6:8], velocity, atol=1e-12)
         assert ctl.x_wp[0] == pytest.approx(0.2)   # the bend's waypoint: kp x its error, unbounded
     with pytest.raises(ValueError, match="waypoint_max"):
         RelinearizingLQR(Linear(), np.ones(8), 1.0, 1.0, 0.0, 1, 10.0, waypoint_max=0.0)
+    with pytest.raises(ValueError, match="approach_speed"):   # it needs the waypoint bounded
+        RelinearizingLQR(Linear(), np.ones(8), 1.0, 1.0, 0.0, 1, 10.0, approach_speed=0.5)
 
 
 class LaggedCopter(PlanarCopter):
