@@ -69,6 +69,11 @@ class MeshConfig:
     # meshes); "exact" = the design's outline with its corners, graded toward the re-entrant ones
     # (the converged references of sdexp.eval.convergence: an even resampling cuts narrow notches)
     outline: str = field(default="resampled", metadata=UNLESS_DEFAULT)
+    # 3D, fTetWild: how far its surface may stray from the given one, relative to the body's bounding
+    # box diagonal; null: fTetWild's own 1e-3 (the drones' meshes). The converged references of a
+    # drone of one's own mesh its file with a tighter one (sdexp.eval.convergence)
+    envelope: Optional[float] = param(None, between(0, 0.01, "(]", "(relative to the bounding box diagonal) or null",
+                                                    **UNLESS_DEFAULT))
     # A drone of one's own (sdexp.sim.mesh.meshfile): a closed surface or a tet mesh (3D), a closed
     # outline or a triangle mesh (2D), in any format meshio reads; null = the shape generator. Its
     # name is not part of the cache keys: its content is (digest), so an edited file is remeshed.

@@ -39,7 +39,7 @@ from dataclasses import replace
 
 from sdexp.cache import cached_arrays, config_key, key_of
 from sdexp.errors import UserError
-from sdexp.sim.drone import build_drone
+from sdexp.sim.drone import build_drone, make_shape
 from sdexp.sim.physics.fem import FemModel
 from sdexp.sim.physics.modes import free_frequencies, rigid_modes, stiffness
 from sdexp.sim.rigid.geometry import hover_thrust, rigid_body
@@ -168,6 +168,9 @@ def richardson(h, b) -> tuple[float, float, float]:
     return float(b_inf), float(p), float(abs(b_inf - b[2]))
 
 
+REFERENCE_ENVELOPE = 2e-4   # a file drone's references: fTetWild's surface envelope (its own: 1e-3)
+
+
 def refined(mesh, r: float, dim: int):
     """The reference mesh settings (a MeshConfig) r times finer: edge_length / r, and in 3D always a plate
     extruded through the thickness (layers x r, at least 4/3 r when the drone has fewer than two,
@@ -176,8 +179,15 @@ def refined(mesh, r: float, dim: int):
     the surface only to its envelope (a few mm, which on a 0.15 m shell is 20% of its bending
     stiffness) however fine they are, and an evenly resampled outline cuts the notches between
     petals (the flower's at 0.63-0.69 m from the centre instead of 0.60), so each refinement
-    would be another body."""
+    would be another body.
+
+    A drone of one's own (``mesh.file``) has no design outline: its file is the body, and the
+    references are fTetWild meshes of that surface r times finer whose envelope is
+    ``REFERENCE_ENVELOPE`` (a fifth of fTetWild's own), so that they converge to the file's body
+    and not to a surface a few millimetres off it."""
     out = {"edge_length": float(mesh.edge_length) / r}
+    if mesh.file is not None:
+        return replace(mesh, **out, envelope=REFERENCE_ENVELOPE)
     if dim == 3:
         out["layers"] = int(np.ceil(max(4 / 3, mesh.layers) * r - 1e-9))
         out["outline"] = "exact"
@@ -190,6 +200,11 @@ def converged_response(drone_cfg, cache_dir: str, refine: list[float], gravity: 
     the Richardson extrapolate of each quantity (``<q>_converged``, ``<q>_order``,
     ``<q>_uncertainty``; per mode for the frequencies, lists); cached (fine 3D meshes take
     minutes to make)."""
+    if drone_cfg.mesh.file is not None:
+        if make_shape(drone_cfg).volume_mesh is not None:
+            raise UserError(f"drone {drone_cfg.name}: {drone_cfg.mesh.file} is a volume mesh, used as given, so "
+                            "there is no finer mesh of it to converge to; give its surface (STL, OBJ, PLY, ...) "
+                            "to validate it against its converged body")
     payload = {"drone": config_key(drone_cfg), "refine": list(refine),
                "gravity": gravity, "load": load, "element": element, "modes": MODES}
 

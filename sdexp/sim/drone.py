@@ -132,7 +132,7 @@ def mesh_shape(shape: Shape, mesh, cache_dir: str, name: str = "") -> tuple[np.n
             from sdexp.sim.mesh.tetmesh import tet_mesh
 
             def tets(vertices, faces):
-                return tet_mesh(vertices, faces, mesh.edge_length, mesh.stop_energy, mesh.coarsen)
+                return tet_mesh(vertices, faces, mesh.edge_length, mesh.stop_energy, mesh.coarsen, mesh.envelope)
             if planes:
                 from sdexp.sim.mesh.mirror import AXES, symmetric_mesh
                 try:

@@ -90,3 +90,32 @@ def test_the_references_carry_the_same_thrust_on_the_same_body_at_every_refineme
             k = slice(rot.vert_ptr[r], rot.vert_ptr[r + 1])
             w = rot.weights[k]
             assert w.sum() == pytest.approx(1.0) and np.linalg.norm(w @ x[rot.verts[k]] - rot.anchors[r]) < 5e-3
+
+
+def test_a_drone_of_ones_own_converges_to_its_file_and_a_volume_mesh_is_refused(tmp_path, monkeypatch):
+    """A file drone's references are fTetWild meshes of its file r times finer with a tighter
+    envelope (no layers, no design outline), through the cache like every reference. A tet-mesh file is used as given, so it has nothing to converge to: a clear refusal."""
+    from dataclasses import replace
+
+    import meshio
+
+    from sdexp.errors import UserError
+    from sdexp.eval.convergence import REFERENCE_ENVELOPE, converged_response, refined
+    from tests.conftest import make_config
+    from tests.sim.test_meshfile import box
+
+    monkeypatch.chdir(tmp_path)
+    v, f = box(2.0, 0.4, 1.0)
+    meshio.write(tmp_path / "plate.stl", meshio.Mesh(v, [("triangle", f)]))
+    rotors = "[[-0.8,0.2,-0.4],[0.8,0.2,-0.4],[0.8,0.2,0.4],[-0.8,0.2,0.4]]"
+    drone = make_config("drone=custom", "drone.mesh.file=plate.stl", f"drone.rotors={rotors}",
+                        "drone.num_sensors=2", "drone.mesh.edge_length=0.4").drone
+    ref = refined(drone.mesh, 2.0, 3)
+    assert (ref.edge_length, ref.envelope, ref.layers, ref.outline) == (0.2, REFERENCE_ENVELOPE, 0, drone.mesh.outline)
+    out = converged_response(drone, str(tmp_path / "cache"), [1.0, 1.5, 2.0])
+    assert len(out["h"]) == 3 and out["compliance_converged"] > 0 and np.isfinite(out["bend_converged"])
+    assert converged_response(drone, str(tmp_path / "cache"), [1.0, 1.5, 2.0])["h"] == out["h"]   # read back
+    tets = np.array([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
+    meshio.write(tmp_path / "plate.vtu", meshio.Mesh(v, [("tetra", tets)]))
+    with pytest.raises(UserError, match="plate.vtu is a volume mesh"):
+        converged_response(replace(drone, mesh=replace(drone.mesh, file="plate.vtu")), str(tmp_path / "cache"), [1.0])

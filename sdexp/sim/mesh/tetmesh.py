@@ -23,19 +23,22 @@ from pathlib import Path
 
 import numpy as np
 
+ENVELOPE = 1e-3  # fTetWild's default surface envelope (epsilon), relative to the bounding box diagonal
 _SEED = 5489  # what std::random_device returns in the child (mt19937's default seed)
 _GETVAL = "_ZNSt13random_device9_M_getvalEv"  # std::random_device::_M_getval()
 _stub = None  # executable page holding the replacement; lives as long as the child
 
 
 def tet_mesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
-             stop_energy: float = 10.0, coarsen: bool = False) -> tuple[np.ndarray, np.ndarray]:
+             stop_energy: float = 10.0, coarsen: bool = False,
+             envelope: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tetrahedralize the closed, outward-oriented triangle surface (vertices, faces).
 
     ``edge_length`` is fTetWild's ideal edge length in metres (the tet count is not monotonic
     in it); ``stop_energy`` its AMIPS quality target (lower = better tets, slower);
     ``coarsen`` removes every vertex it can while keeping the quality (far fewer tets, the
-    same smallest tet, so the same stable time step). Returns
+    same smallest tet, so the same stable time step); ``envelope`` how far the tet mesh's surface
+    may stray from the given one, relative to its bounding box diagonal (None: fTetWild's 1e-3). Returns
     (points (n, 3) float64, tets (m, 4) int32) with every tet positively oriented
     (det[x1-x0, x2-x0, x3-x0] > 0), no zero-volume tet and no unreferenced point.
     """
@@ -48,7 +51,8 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
         raise ValueError(f"edge_length = {edge_length!r}: must be > 0")
     with tempfile.TemporaryDirectory(prefix="sdexp-tetwild-") as tmp:
         np.savez(Path(tmp) / "in.npz", vertices=vertices, faces=faces,
-                 edge_length=float(edge_length), stop_energy=float(stop_energy), coarsen=bool(coarsen))
+                 edge_length=float(edge_length), stop_energy=float(stop_energy), coarsen=bool(coarsen),
+                 envelope=float(ENVELOPE if envelope is None else envelope))
         # run_path rather than running this file as a script: a script's folder goes first on
         # sys.path, and a module of sdexp/sim could then shadow a standard one in the child.
         code = "import runpy, sys; runpy.run_path(sys.argv[1], run_name='__main__')"
@@ -155,6 +159,7 @@ def _child_main() -> None:
         points, tets = pytetwild.tetrahedralize(
             inp["vertices"], inp["faces"], edge_length_abs=float(inp["edge_length"]),
             stop_energy=float(inp["stop_energy"]), coarsen=bool(inp["coarsen"]), num_threads=1,
+            epsilon=float(inp["envelope"]),
             quiet=True)
     np.savez("out.npz", points=points, tets=tets, pinned=pinned)
 
