@@ -53,6 +53,7 @@ def rejected(*overrides) -> str:
     ("drone.imu_radius=-0.1", "drone.imu_radius", "> 0 m"),
     ("drone.mesh.outline=exakt", "drone.mesh.outline", "resampled, or exact"),
     ("drone.mesh.outline=exact", "drone.mesh.outline", "with drone.mesh.layers >= 1"),   # the flower: fTetWild
+    ("drone.mesh.envelope=0.5", "drone.mesh.envelope", "(relative to the bounding box diagonal) or null"),
     ("drone.size=[3.6,inf,3.6]", "drone.size", "positive lengths"),
     ("sim.gravity=nan", "sim.gravity", ">= 0"),
     ("sim.gravity=-9.81", "sim.gravity", ">= 0"),
