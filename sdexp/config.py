@@ -590,5 +590,7 @@ def _check_control(cfg) -> None:
                 "control.q_e_axes", c.q_e_axes, f"null or {n_e} numbers > 0 (one per Euler angle of drone {cfg.drone.name})")
     check_range(c.share_pull == 0 or not c.feedforward, "control.share_pull", c.share_pull,
                 "0 while control.feedforward is on (the feed-forward sets the operating thrust itself)")
+    check_range(c.approach_speed is None or c.waypoint_max is not None, "control.approach_speed", c.approach_speed,
+                "null while control.waypoint_max is null (the approach starts where the waypoint is bounded)")
     check_range(c.delay_phase_deg is None or cfg.model.command_delay > 0, "control.delay_phase_deg",
                 c.delay_phase_deg, "null while model.command_delay is 0 (there is no delay to bound)")

@@ -65,6 +65,7 @@ def rejected(*overrides) -> str:
     ("control.kd=-1", "control.kd", ">= 0"),
     ("control.waypoint_max=0", "control.waypoint_max", "> 0 or null"),
     ("control.approach_speed=-1", "control.approach_speed", "> 0 m/s or null"),
+    ("control.approach_speed=0.5", "control.approach_speed", "null while control.waypoint_max is null"),
     ("control.bend_snr=-1", "control.bend_snr", ">= 0"),
     ("control.q_s_alike=-1", "control.q_s_alike", ">= 0"),
     ("control.r_alike=-1", "control.r_alike", ">= 0"),

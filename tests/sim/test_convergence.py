@@ -94,7 +94,8 @@ def test_the_references_carry_the_same_thrust_on_the_same_body_at_every_refineme
 
 def test_a_drone_of_ones_own_converges_to_its_file_and_a_volume_mesh_is_refused(tmp_path, monkeypatch):
     """A file drone's references are fTetWild meshes of its file r times finer with a tighter
-    envelope (no layers, no design outline), through the cache like every reference. A tet-mesh file is used as given, so it has nothing to converge to: a clear refusal."""
+    envelope (no layers, no design outline), through the cache like every reference. A tet-mesh
+    file is used as given, so it has nothing to converge to: a clear refusal."""
     from dataclasses import replace
 
     import meshio
