@@ -106,6 +106,12 @@ def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, ca
 
     t0 = time.perf_counter()
     folder = Path(out_dir) / sc["id"]
+    key = scenario_key(sc, drone_cfg, sim_cfg, noise_cfg, dcfg)
+    row = finished_row(folder, key)
+    if row is not None:   # a run killed after this scenario (or grown by more scenarios) resumes here
+        if report:
+            report(1)
+        return row
     drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
     r = dcfg.record
     record_flights(drone, sim_cfg, noise_cfg, folder / "logs", int(r.flights), float(r.seconds), list(r.manoeuvres),
@@ -123,9 +129,37 @@ def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, ca
            "fitted": json.dumps(rep["effects"])}
     row.update(param_fit(sc, rep))
     row.update(oracle_gap(sc, folder, drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir))
+    if key is not None:
+        atomic_write(folder / ROW_FILE, lambda tmp: tmp.write_text(json.dumps({"key": key, "row": row})))
     if report:
         report(1)
     return row
+
+
+ROW_FILE = "row.json"
+
+
+def scenario_key(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg) -> str | None:
+    """What makes a scenario's row: the scenario, the configs and the code's commit. None (never
+    reused) where the code has uncommitted changes or no commit to name: a row is only as good
+    as the code that made it."""
+    from sdexp.cache import config_key, key_of
+    from sdexp.provenance import source
+    code = source()
+    if "commit" not in code or "uncommitted" in code:
+        return None
+    return key_of("bench-scenario", 1, {"scenario": sc, "code": code, "drone": config_key(drone_cfg),
+                                        "sim": config_key(sim_cfg), "noise": config_key(noise_cfg),
+                                        "discrepancy": config_key(dcfg)})
+
+
+def finished_row(folder: Path, key: str | None) -> dict | None:
+    """The row a finished scenario wrote under ``key``, or None (not finished, made otherwise, damaged)."""
+    try:
+        done = json.loads((Path(folder) / ROW_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return done.get("row") if key is not None and done.get("key") == key else None
 
 
 def oracle_gap(sc: dict, folder: Path, drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir: str) -> dict:
@@ -339,6 +373,10 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
         fn, tasks = rescore_row, [(r, *args, scen_dir, cache_dir) for r in old]
     else:
         fn, tasks = run_scenario, [(sc, *args, scen_dir, cache_dir) for sc in scs]
+        resumed = sum(finished_row(Path(scen_dir) / sc["id"], scenario_key(sc, *args)) is not None for sc in scs)
+        if resumed:
+            log.info(f"discrepancy_bench: {resumed} of {len(scs)} scenarios finished in {scen_dir} "
+                     "by a run of this code and config: read, not run again")
     if workers > 1:
         rows = run_spawned(fn, tasks, workers, progress)
     else:
@@ -351,5 +389,6 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     metrics = summarize(table)
     metrics["wall_seconds"] = time.perf_counter() - t0
     metrics["workers"] = workers
+    metrics["scenarios_resumed"] = 0 if params.rescore else resumed
     metrics["targets_met"]["wall_minutes<=30"] = metrics["wall_seconds"] <= 30 * 60
     return metrics

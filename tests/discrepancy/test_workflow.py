@@ -78,11 +78,17 @@ def test_a_push_no_candidate_makes_is_answered_unexplained_where_it_shows(tmp_pa
     assert "regime" in cell
 
 
-def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg):
+def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg, monkeypatch):
+    import sdexp.provenance
+    monkeypatch.setattr(sdexp.provenance, "source", lambda: "sdexp 0.1.0, commit 0123456789ab")   # a clean checkout
     params = DiscrepancyBenchParams(effects=["thrust_loss"], levels=[1], seeds=1, nulls=1, combos=False, unmodelled=0,
                                     variants=0)
-    m = run_bench(small_cfg.drone, small_cfg.sim, small_cfg.noise, small_cfg.discrepancy, params, tmp_path,
-                  small_cfg.cache_dir, workers=1)
+
+    def bench():
+        return run_bench(small_cfg.drone, small_cfg.sim, small_cfg.noise, small_cfg.discrepancy, params, tmp_path,
+                         small_cfg.cache_dir, workers=1)
+    m = bench()
+    assert m["scenarios_resumed"] == 0
     assert m["scenarios"] == 2
     assert m["null_false_positive_rate"] == 0.0
     assert m["per_effect_top1"]["thrust_loss"] == 1.0 and m["median_gap_reduction"] > 0.5
@@ -90,6 +96,21 @@ def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg):
     assert set(m["targets_met"]) == {"top1_accuracy>=0.9", "top1_with_library_answer>=0.9", "unmodelled_honest>=0.8",
                                      "null_false_positive_rate<=0.05", "median_gap_reduction>=0.8", "wall_minutes<=30",
                                      "param_interval_coverage>=0.8"}
+    # run again into the same folder (a killed run restarted): each finished scenario is read, not run
+    table = (tmp_path / "scenarios.csv").read_text()
+    again = bench()
+    assert again["scenarios_resumed"] == 2 and (tmp_path / "scenarios.csv").read_text() == table
+
+
+def test_a_finished_scenario_is_reused_only_under_its_own_key(tmp_path):
+    from sdexp.discrepancy.bench import ROW_FILE, finished_row
+    (tmp_path / ROW_FILE).write_text(json.dumps({"key": "k1", "row": {"id": "x"}}))
+    assert finished_row(tmp_path, "k1") == {"id": "x"}
+    assert finished_row(tmp_path, "k2") is None            # another scenario, config or commit
+    assert finished_row(tmp_path, None) is None            # code with uncommitted changes: never reused
+    assert finished_row(tmp_path / "nope", "k1") is None   # not finished
+    (tmp_path / ROW_FILE).write_text('{"key": "k1", "ro')   # damaged
+    assert finished_row(tmp_path, "k1") is None
 
 
 def test_summary_counts_ties_nulls_and_gap():
