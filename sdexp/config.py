@@ -196,6 +196,10 @@ class ModelConfig:
     # the run's seed: the nets of ensemble 1; sdexp.model.identification). One net's errors that
     # depend on its initialisation and its held-out split average out; 1: one net each (the paper)
     ensemble: int = param(1, between(1, 32, unit="nets per network", **UNLESS_DEFAULT))
+    # world: the nets read the yaw and world-frame velocities (the paper); heading: they read the
+    # tilt alone and h works in the heading frame, so no net can learn a dependence on which way
+    # the drone faces, which its body does not have (sdexp.model.heading; 2D drones: no change)
+    frame: str = param("world", choices(("world", "heading"), **UNLESS_DEFAULT))
     threads: int = field(default=2, metadata=NOT_KEY)   # torch threads: >= 2 trains d, g, h side by side, one thread each
 
 

@@ -68,17 +68,19 @@ def channel_names(sizes: dict) -> dict[str, list[str]]:
 # ------------------------------------------------------------------------------ (a) acceleration
 
 @torch.no_grad()
-def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon: int = 1, delay: int = 0):
+def acceleration_test(data, trained, val_idx: np.ndarray, alpha: float, horizon: int = 1, delay: int = 0,
+                      frame: str = "world"):
     """Per-channel R^2 of the reconstructed acceleration on the given transitions (those whose
     ``horizon``-frame target exists, ``alpha`` apart); returns (table, {group: (true accel,
-    predicted accel)}, the dataset rows they are of, sorted)."""
+    predicted accel)}, the dataset rows they are of, sorted). With ``frame`` "heading" the nets
+    are scored as they learned, the horizontal acceleration along and across the heading."""
     names = channel_names(state_sizes(data))
     rows, series = [], {}
     used = design_rows(data, val_idx, horizon, delay)
     for spec, group in zip(DECOMPOSED, GROUPS):
         if spec.name not in trained.nets:
             continue
-        X, Y, base = design(data, spec, val_idx, horizon, delay)
+        X, Y, base = design(data, spec, val_idx, horizon, delay, frame)
         net = trained.nets[spec.name]
         pred = np.concatenate([net(torch.from_numpy(X[i:i + 65536])).numpy() for i in range(0, len(X), 65536)])
         cur = X[:, base]
@@ -344,7 +346,7 @@ def run(run: Run) -> dict:
 
     # (a) acceleration on held-out episodes
     _, val_idx = data.split(float(cfg.data.validation_fraction), int(cfg.seed))
-    table, series, rows = acceleration_test(data, trained, val_idx, alpha, horizon, dyn.delay)
+    table, series, rows = acceleration_test(data, trained, val_idx, alpha, horizon, dyn.delay, str(cfg.model.frame))
     run.table(table, "acceleration_r2")
     acceleration_plot(data, rows, series, table, dt, float(p.plot_seconds),
                       out_dir / "acceleration.png")

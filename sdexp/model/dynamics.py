@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from sdexp.model.networks import EnsembleMLP, ResidualMLP
+from sdexp.model.heading import TILT, YAW, applies, rotation, turn
 from sdexp.model.specs import DECOMPOSED, NetSpec
 
 # which state block holds each network's target velocity
@@ -117,13 +118,14 @@ class _one_thread:
 class LearnedDynamics:
     def __init__(self, nets: Mapping[str, ResidualMLP | EnsembleMLP], n_s: int, n_e: int, dim: int, m: int,
                  alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64,
-                 dt: float | None = None, delay: int = 0, bend_spread=None):
+                 dt: float | None = None, delay: int = 0, bend_spread=None, frame: str = "world"):
         """``alpha``: the time between a network's input and its target (model.horizon frames);
         ``dt``: one control interval (default alpha), the step of a simulated rollout; ``delay``:
         control steps from a command to the thrust it sets (model.command_delay): u in f(x, u) is
         the command acting now, the one sent ``delay`` steps ago; ``bend_spread``: the standard
         deviation of each bend channel s in the data the nets learned from (None: not known), what
-        tells a controller which bends the model saw move above the sensors' noise."""
+        tells a controller which bends the model saw move above the sensors' noise; ``frame``:
+        "heading" for nets trained in the heading frame (model.frame, sdexp.model.heading)."""
         self.n_s, self.n_e, self.dim, self.m, self.alpha = int(n_s), int(n_e), int(dim), int(m), float(alpha)
         self.dt = self.alpha if dt is None else float(dt)
         self.delay = int(delay)
@@ -137,7 +139,12 @@ class LearnedDynamics:
         self.n = o
         self.slices["u"] = slice(o, o + m)   # in z = concat(x, u)
         self.dtype = dtype
+        self.heading = applies(frame, self.n_e)
+        cols_of = dict(self.slices)
+        if self.heading:   # the nets read the tilt alone: e without its yaw
+            cols_of["e"] = self.slices["e"].start + np.array(TILT)
         self.parts = []   # (velocity block, network, input columns of z)
+        self.turned = []  # per part: where its input p_dot sits (heading frame), or None
         for spec in specs:
             block = _TARGET_BLOCK[spec.target]
             width = sizes[block]
@@ -148,27 +155,41 @@ class LearnedDynamics:
             net = copy.deepcopy(nets[spec.name]).to(dtype).eval()
             for prm in net.parameters():
                 prm.requires_grad_(False)
-            cols = np.concatenate([np.arange(self.n + m)[self.slices[k]] for k in spec.inputs])
+            cols = np.concatenate([np.arange(self.n + m)[cols_of[k]] for k in spec.inputs])
             if net.n_in != len(cols) or net.n_out != width:
                 raise ValueError(f"network {spec.name!r} is {net.n_in} -> {net.n_out}, the state needs "
                                  f"{len(cols)} -> {width}")
             self.parts.append((block, net, torch.as_tensor(cols, dtype=torch.long), cols))
+            turned = self.heading and "e" in spec.inputs and block == "p_dot"
+            self.turned.append(np.flatnonzero(np.isin(cols, np.arange(self.n)[self.slices["p_dot"]])) if turned else None)
         self._jac = [_jacobian(net) for _, net, _, _ in self.parts]
+        self._yaw = self.slices["e"].start + YAW
 
     @classmethod
-    def from_trained(cls, trained, data, dt: float, horizon: int = 1, delay: int = 0) -> "LearnedDynamics":
+    def from_trained(cls, trained, data, dt: float, horizon: int = 1, delay: int = 0,
+                     frame: str = "world") -> "LearnedDynamics":
         """From a :class:`~sdexp.model.training.TrainedNets` and the dataset it was trained on;
         ``dt`` the control interval, ``horizon`` the frames between a net's input and target,
-        ``delay`` the command delay they were trained with."""
+        ``delay`` the command delay and ``frame`` the frame they were trained with."""
         a = data.arrays if hasattr(data, "arrays") else data
         spread = np.asarray(a["s"], dtype=float).reshape(len(a["s"]), -1).std(axis=0) if "s" in a else None
         return cls(trained.nets, **state_sizes(data), alpha=dt * horizon, specs=trained.specs, dt=dt, delay=delay,
-                   bend_spread=spread)
+                   bend_spread=spread, frame=frame)
 
     # ------------------------------------------------------------------------------ torch
     def net_outputs(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
         """Predicted next velocities per block, from z = concat(x, u) (..., n + m)."""
-        return {block: net(z.index_select(-1, idx)) for block, net, idx, _ in self.parts}
+        out = {}
+        for (block, net, idx, _), turned in zip(self.parts, self.turned):
+            inp = z.index_select(-1, idx)
+            if turned is None:
+                out[block] = net(inp)
+                continue
+            yaw = z[..., self._yaw]   # h in the heading frame: p_dot turned in, its prediction back
+            a, b = int(turned[0]), int(turned[-1]) + 1
+            inp = torch.cat([inp[..., :a], turn(inp[..., a:b], yaw, -1.0), inp[..., b:]], -1)
+            out[block] = turn(net(inp), yaw)
+        return out
 
     def f_torch(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         z = torch.cat([x, u], dim=-1)
@@ -216,10 +237,27 @@ class LearnedDynamics:
             J[rows, cols] = 1.0
             f0[rows] = x[cols]
         z = np.concatenate([x, u])
-        for (block, _, _, cols), jac in zip(self.parts, self._jac):
-            y, g = jac(z[cols])
+        for (block, _, _, cols), jac, turned in zip(self.parts, self._jac, self.turned):
             rows = np.arange(n)[sl[block]]
+            if turned is None:
+                y, g = jac(z[cols])
+            else:
+                y, g, dy_dyaw = self._turned_jacobian(jac, z, cols, turned)
+                J[rows, self._yaw] = dy_dyaw / a
             J[np.ix_(rows, cols)] = g / a                # (1/alpha) d net / d inputs
             J[rows, rows] -= 1.0 / a                     # (1/alpha)(d net / d v - I)
             f0[rows] = (y - x[rows]) / a
         return f0, J[:, :n], J[:, n:]
+
+    def _turned_jacobian(self, jac, z, cols, turned) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(y, dy/dz[cols], dy/dyaw) of a heading-frame net, y = Ry(yaw) net(.., Ry(yaw)^T p_dot, ..),
+        by the chain rule: the yaw is no input of the net but turns its input and its output,
+        dy/dyaw = Ry' net + Ry dnet/dp_dot_h (Ry')^T p_dot."""
+        R, dR = rotation(z[self._yaw])
+        inp = z[cols].copy()
+        v = inp[turned]
+        inp[turned] = R.T @ v
+        y_h, g_h = jac(inp)
+        g = R @ g_h
+        g[:, turned] = g[:, turned] @ R.T
+        return R @ y_h, g, dR @ y_h + R @ g_h[:, turned] @ dR.T @ v

@@ -22,5 +22,5 @@ def identify(cfg, progress: bool = True) -> tuple[Dataset, TrainedNets, LearnedD
                                      float(cfg.data.validation_fraction), DECOMPOSED, progress)
                         for k in range(int(cfg.model.ensemble))])
     dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon),
-                                       int(cfg.model.command_delay))
+                                       int(cfg.model.command_delay), str(cfg.model.frame))
     return data, trained, dyn

@@ -51,6 +51,7 @@ from sdexp.cache import atomic_write, build_lock, config_key, key_of
 from sdexp.errors import UserError
 from sdexp.parallel import run_spawned
 from sdexp.model.networks import EnsembleMLP, ResidualMLP
+from sdexp.model.heading import TILT, YAW, applies, turn
 from sdexp.model.specs import DECOMPOSED, NetSpec
 
 log = logging.getLogger(__name__)
@@ -130,30 +131,33 @@ def design_rows(data, idx: np.ndarray | None = None, horizon: int = 1, delay: in
     return rows if idx is None else np.intersect1d(rows, idx)
 
 
-def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1, delay: int = 0
-           ) -> tuple[np.ndarray, np.ndarray, list[int]]:
+def design(data, spec: NetSpec, idx: np.ndarray | None = None, horizon: int = 1, delay: int = 0,
+           frame: str = "world") -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(inputs (N, n_in), targets (N, n_out), base) for one network; base[j] is the input column
     holding the current value of output j. ``horizon`` k > 1: the target is the velocity k
     frames ahead under the same command (``model.horizon``), rows without one are dropped.
-    ``delay``: the input u is the command sent that many frames earlier (``model.command_delay``)."""
+    ``delay``: the input u is the command sent that many frames earlier (``model.command_delay``).
+    ``frame``: "heading" gives a net that reads e its tilt alone and p_dot and its target in the
+    heading frame of the input's row (sdexp.model.heading)."""
     a = _arrays(data)
     missing = [k for k in (*spec.inputs, spec.target) if k not in a]
     if missing:
         raise UserError(f"the dataset has no {missing} arrays, needed by network {spec.name!r}")
-    cols = [np.asarray(acting_commands(a, delay) if k == "u" else a[k], dtype=np.float32).reshape(len(a[k]), -1)
-            for k in spec.inputs]
-    X = np.concatenate(cols, axis=1)
-    Y = np.asarray(a[spec.target], dtype=np.float32).reshape(len(X), -1)
-    offset = 0
-    for k, c in zip(spec.inputs, cols):
-        if k == spec.current:
-            break
-        offset += c.shape[1]
-    if spec.current not in spec.inputs or cols[spec.inputs.index(spec.current)].shape[1] != Y.shape[1]:
-        raise UserError(f"network {spec.name!r}: {spec.current} must be an input as wide as {spec.target}")
-    base = list(range(offset, offset + Y.shape[1]))
     rows = design_rows(a, idx, horizon, delay)
-    return X[rows], Y[rows + horizon - 1], base
+    part = lambda arr, at: np.asarray(arr, dtype=np.float32).reshape(len(arr), -1)[at]
+    cols = {k: part(acting_commands(a, delay) if k == "u" else a[k], rows) for k in spec.inputs}
+    Y = part(a[spec.target], rows + horizon - 1)
+    if "e" in cols and applies(frame, cols["e"].shape[1]):
+        yaw = cols["e"][:, YAW]
+        cols["e"] = cols["e"][:, list(TILT)]
+        if "p_dot" in cols:
+            cols["p_dot"] = turn(cols["p_dot"], yaw, -1.0)
+        if spec.target == "p_dot_next":
+            Y = turn(Y, yaw, -1.0)
+    if spec.current not in cols or cols[spec.current].shape[1] != Y.shape[1]:
+        raise UserError(f"network {spec.name!r}: {spec.current} must be an input as wide as {spec.target}")
+    offset = sum(cols[k].shape[1] for k in spec.inputs[:spec.inputs.index(spec.current)])
+    return np.concatenate([cols[k] for k in spec.inputs], axis=1), Y, list(range(offset, offset + Y.shape[1]))
 
 
 def dataset_key(data, keys: Sequence[str]) -> str:
@@ -368,13 +372,13 @@ def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, valid
 def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress) -> TrainedNets:
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
-    horizon, delay = int(model_cfg.horizon), int(model_cfg.command_delay)
+    horizon, delay, frame = int(model_cfg.horizon), int(model_cfg.command_delay), str(model_cfg.frame)
     for i, spec in enumerate(specs):
-        X_tr, Y_tr, base = design(data, spec, train_idx, horizon, delay)
+        X_tr, Y_tr, base = design(data, spec, train_idx, horizon, delay, frame)
         if Y_tr.shape[1] == 0:
             skipped.append(spec.name)
             continue
-        X_va, Y_va, _ = design(data, spec, val_idx, horizon, delay)
+        X_va, Y_va, _ = design(data, spec, val_idx, horizon, delay, frame)
         ok_tr = np.isfinite(X_tr).all(1) & np.isfinite(Y_tr).all(1)
         ok_va = np.isfinite(X_va).all(1) & np.isfinite(Y_va).all(1)
         if not (ok_tr.all() and ok_va.all()):
