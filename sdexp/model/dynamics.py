@@ -23,8 +23,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from sdexp.model.networks import EnsembleMLP, ResidualMLP
 from sdexp.model.heading import TILT, YAW, applies, rotation, turn
+from sdexp.model.networks import EnsembleMLP, ResidualMLP
 from sdexp.model.specs import DECOMPOSED, NetSpec
 
 # which state block holds each network's target velocity
