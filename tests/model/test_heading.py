@@ -100,3 +100,19 @@ def test_a_2d_drone_has_no_heading():
     assert applies("heading", 3) and not applies("heading", 1) and not applies("world", 3)
     with pytest.raises(ValueError, match="heading"):
         applies("body", 3)
+
+
+def test_nets_trained_in_the_heading_frame_fly_in_it(tmp_path):
+    """model.frame reaches the trainer (its own cache entry) and the model built from it."""
+    from sdexp.model.training import train_models
+    from tests.model.test_networks import model_cfg
+    data = synthetic_dataset(n=1200, n_s=N_S, n_e=N_E, dim=DIM, m=M)
+    world = train_models(data, model_cfg(), 0, tmp_path, 0.2, progress=False)
+    heading = train_models(data, model_cfg(frame="heading"), 0, tmp_path, 0.2, progress=False)
+    assert heading.key != world.key and heading.nets["g"].n_in == world.nets["g"].n_in - 1
+    dyn = LearnedDynamics.from_trained(heading, data, 0.01, frame="heading")
+    x, u = np.random.default_rng(0).normal(size=dyn.n), np.zeros(M)
+    moved = dyn.f(turned_state(dyn, x, 0.7), u) - turned_rate(dyn, dyn.f(x, u), 0.7)
+    assert np.abs(moved).max() < 1e-9
+    with pytest.raises(ValueError, match="network"):   # nets of one frame read as the other's
+        LearnedDynamics.from_trained(heading, data, 0.01)
