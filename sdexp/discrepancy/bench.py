@@ -108,7 +108,7 @@ def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, ca
     folder = Path(out_dir) / sc["id"]
     key = scenario_key(sc, drone_cfg, sim_cfg, noise_cfg, dcfg)
     row = finished_row(folder, key)
-    if row is not None:   # a run killed after this scenario (or grown by more scenarios) resumes here
+    if row is not None:   # a run killed after this scenario resumes here (as does one that shares scenario_dir)
         if report:
             report(1)
         return row

@@ -161,7 +161,8 @@ class LearnedDynamics:
                                  f"{len(cols)} -> {width}")
             self.parts.append((block, net, torch.as_tensor(cols, dtype=torch.long), cols))
             turned = self.heading and "e" in spec.inputs and block == "p_dot"
-            self.turned.append(np.flatnonzero(np.isin(cols, np.arange(self.n)[self.slices["p_dot"]])) if turned else None)
+            p_dot = np.arange(self.n)[self.slices["p_dot"]]
+            self.turned.append(np.flatnonzero(np.isin(cols, p_dot)) if turned else None)
         self._jac = [_jacobian(net) for _, net, _, _ in self.parts]
         self._yaw = self.slices["e"].start + YAW
 
