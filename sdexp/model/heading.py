@@ -12,7 +12,7 @@ to yaw) this made slow unstable yaw modes that the LQR met with 2.6x gain spikes
 
 In the heading frame the nets cannot: they read the tilt (e_x, e_z) instead of e, and h reads
 p_dot turned into the heading frame, Ry(-e_y) p_dot, and predicts the next p_dot there, turned
-back by Ry(e_y). d, g and the vertical channel are untouched. Only a 3D drone has a heading;
+back by Ry(e_y). d and the vertical channel are as before. Only a 3D drone has a heading;
 on a 2D drone (one angle, in the plane) the frame changes nothing.
 
 Functions take NumPy arrays or torch tensors alike (the trainer's arrays, the model's batches).
