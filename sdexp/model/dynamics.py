@@ -139,9 +139,9 @@ class LearnedDynamics:
         self.n = o
         self.slices["u"] = slice(o, o + m)   # in z = concat(x, u)
         self.dtype = dtype
-        self.heading = applies(frame, self.n_e)
+        heading = applies(frame, self.n_e)
         cols_of = dict(self.slices)
-        if self.heading:   # the nets read the tilt alone: e without its yaw
+        if heading:   # the nets read the tilt alone: e without its yaw
             cols_of["e"] = self.slices["e"].start + np.array(TILT)
         self.parts = []   # (velocity block, network, input columns of z)
         self.turned = []  # per part: where its input p_dot sits (heading frame), or None
@@ -160,7 +160,7 @@ class LearnedDynamics:
                 raise ValueError(f"network {spec.name!r} is {net.n_in} -> {net.n_out}, the state needs "
                                  f"{len(cols)} -> {width}")
             self.parts.append((block, net, torch.as_tensor(cols, dtype=torch.long), cols))
-            turned = self.heading and "e" in spec.inputs and block == "p_dot"
+            turned = heading and "e" in spec.inputs and block == "p_dot"
             p_dot = np.arange(self.n)[self.slices["p_dot"]]
             self.turned.append(np.flatnonzero(np.isin(cols, p_dot)) if turned else None)
         self._jac = [_jacobian(net) for _, net, _, _ in self.parts]
