@@ -432,6 +432,12 @@ def _walk_schema(node: DictConfig, cls, prefix: str) -> None:
                         _walk_schema(v, item, f"{prefix}{name}[{i}].")
 
 
+def check_schema(node: dict | DictConfig, cls, prefix: str) -> None:
+    """Every key of ``node`` (plain or composed) is a field of the dataclass ``cls``, nested ones
+    too; the error names the key as ``prefix`` + key, the closest valid one and the valid ones."""
+    _walk_schema(node if isinstance(node, DictConfig) else OmegaConf.create(node), cls, prefix)
+
+
 def unknown_key_error(key: str) -> UserError | None:
     """The error for an override of ``key`` that the schema has no place for (None when the key's
     parent is not a schema node, e.g. a free-form params mapping)."""

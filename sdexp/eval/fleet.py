@@ -251,12 +251,45 @@ def data_torque_map(arrays: dict, rigid: np.ndarray, level: list[int], dt: float
 
 def job_config(cfg, name: str, seed: int, p: FleetParams):
     """The run's config for one drone and seed: its drone (the run's own, with its overrides, if it
-    is that one), the data rule's samples, and one core (jobs run side by side)."""
+    is that one), the data rule's samples, the drone's recipe (whose data.samples, if it sets them,
+    win over the rule), and one core (jobs run side by side)."""
     drone = cfg.drone if name == cfg.drone.name else conf.drone(name)
     samples = samples_for(p, int(drone.num_sensors), int(drone.dim), int(cfg.data.samples))
-    return replace(cfg, drone=drone, seed=int(seed),
-                   data=replace(cfg.data, samples=int(samples), workers=1),
-                   model=replace(cfg.model, threads=1), sim=replace(cfg.sim, threads=1))
+    job = with_recipe(replace(cfg, drone=drone, seed=int(seed), data=replace(cfg.data, samples=int(samples))),
+                      p.recipes.get(name), f"experiment.params.recipes.{name}")
+    return replace(job, data=replace(job.data, workers=1), model=replace(job.model, threads=1),
+                   sim=replace(job.sim, threads=1))
+
+
+def with_recipe(cfg, recipe: dict | None, where: str):
+    """``cfg`` with ``recipe``'s keys merged into its data, model and control sections
+    (experiment.params.recipes: what one drone learns and flies with), checked as a whole config
+    is; a value out of range is a UserError naming ``where``."""
+    if not recipe:
+        return cfg
+    from omegaconf import OmegaConf
+
+    from sdexp.config import validate
+    from sdexp.errors import UserError
+    sections = {section: OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(getattr(cfg, section)), keys))
+                for section, keys in recipe.items()}
+    out = replace(cfg, **sections)
+    try:
+        validate(out)
+    except UserError as err:
+        raise UserError(f"{where}: {err}") from None
+    return out
+
+
+def recipe_text(recipe: dict | None) -> str:
+    """A recipe as the overrides that give it, e.g. ``model.linear=[d, g, h] model.command_delay=0``."""
+    def flat(node, prefix):
+        for key, value in node.items():
+            if isinstance(value, dict):
+                yield from flat(value, f"{prefix}{key}.")
+            else:
+                yield f"{prefix}{key}={'null' if value is None else value}".replace("'", "")
+    return " ".join(flat(recipe or {}, ""))
 
 
 def job_path(jobs_dir: Path, name: str, seed: int) -> Path:
@@ -276,7 +309,8 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
     from sdexp.eval.flights import Setup
 
     job_cfg = job_config(cfg, name, seed, p)
-    result = {"drone": name, "seed": int(seed), "samples": int(job_cfg.data.samples), "rows": [],
+    result = {"drone": name, "seed": int(seed), "samples": int(job_cfg.data.samples),
+              "recipe": recipe_text(p.recipes.get(name)), "rows": [],
               "physics": None, "error": None, "seconds": {}}
     phase, t0 = "learning (data and nets)", time.perf_counter()
     try:
@@ -318,6 +352,12 @@ def _order(names: list[str], seeds: list[int]) -> list[tuple[str, int]]:
     (their simulation is 2-40x slower), each drone's seeds together (they share its mesh)."""
     dims = {n: int(conf.drone(n).dim) for n in names}
     return [(n, s) for n in sorted(names, key=lambda n: -dims[n]) for s in seeds]
+
+
+def check(run: Run) -> None:
+    """Every drone's recipe, merged into its config, within range before anything is written."""
+    for name in run.params.recipes:
+        job_config(run.cfg, name, 0, run.params)
 
 
 def run(run: Run) -> dict:
@@ -411,7 +451,7 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
 
 FLIGHT_COLUMNS = ("drone", "seed", "task", "controller", "survived", "survival_time", "failure", "seconds",
                   "final_error", "velocity_error_rms", "bend_rms_deg", "max_position_deviation", "max_tilt_deg",
-                  "thrust_usage", "primary", "primary_value", "tolerance", "samples")
+                  "thrust_usage", "primary", "primary_value", "tolerance", "samples", "recipe")
 
 
 def fleet_table(results: list[dict]) -> pd.DataFrame:
@@ -421,9 +461,10 @@ def fleet_table(results: list[dict]) -> pd.DataFrame:
     for res in results:
         if res["error"]:
             rows.append({"drone": res["drone"], "seed": res["seed"], "task": "-", "controller": "-",
-                         "survived": False, "failure": f"job: {res['error']}", "samples": res["samples"]})
+                         "survived": False, "failure": f"job: {res['error']}", "samples": res["samples"],
+                         "recipe": res.get("recipe", "")})
         for row in res["rows"]:
-            rows.append({**row, "samples": res["samples"]})
+            rows.append({**row, "samples": res["samples"], "recipe": res.get("recipe", "")})
     # every column a flight row has, also when no job flew (then all rows are failed jobs')
     return pd.DataFrame(rows).reindex(columns=list(dict.fromkeys([*FLIGHT_COLUMNS, *(k for r in rows for k in r)])))
 

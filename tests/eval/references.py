@@ -42,6 +42,7 @@ REDUCED = {
     # two small drones, one seed, each with SHRUNK's 800 transitions (no per-channel rule), one at a time
     "fleet": ["experiment.params.drones=[rod,engine]", "experiment.params.seeds=[0]",
               "experiment.params.samples_per_channel=null", "experiment.params.workers=1",
+              "experiment.params.recipes.rod.data.samples=800",   # the rod's recipe, on SHRUNK's data
               "experiment.params.hover_seconds=0.3", "experiment.params.reach_seconds=0.3",
               "experiment.params.ramp_seconds=0.1", "experiment.params.velocity_seconds=0.2",
               "experiment.params.settle_seconds=0.05", "experiment.params.deform_ramp_seconds=0.05",

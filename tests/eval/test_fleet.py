@@ -2,6 +2,7 @@
 stored reference, resuming from its job files, a drone that cannot learn recorded as a row, its
 data rule and task schedules, the physics it reports, and its bad input."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -177,6 +178,38 @@ def test_the_shape_holding_thrust_leaves_the_rod_a_fraction_of_its_even_fold(cac
 def test_bad_fleet_lists_name_the_valid_choices_before_anything_runs(tmp_path, override, words):
     with pytest.raises(UserError) as err:
         run_experiment(make_cfg("experiment=fleet", override), tmp_path / "run")
+    for w in words:
+        assert w in str(err.value), str(err.value)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_drone_s_recipe_changes_its_learning_and_control_alone():
+    rod = {"model": {"linear": ["d", "g", "h"], "command_delay": 0}, "control": {"delay_phase_deg": None},
+           "data": {"samples": 60000}}
+    cfg = make_config("experiment=fleet")
+    p = replace(cfg.experiment.params, recipes={"rod": rod})
+    job, plain = fleet.job_config(cfg, "rod", 1, p), fleet.job_config(cfg, "rod", 1, cfg.experiment.params)
+    assert job.model.linear == ["d", "g", "h"] and job.model.command_delay == 0 and job.control.delay_phase_deg is None
+    assert job.data.samples == 60000 and plain.data.samples == 1500 * 11   # the recipe's samples win over the rule
+    assert job.model.frame == plain.model.frame and job.control.r == plain.control.r   # the rest as the run's
+    assert (job.drone, job.sim, job.noise, job.seed) == (plain.drone, plain.sim, plain.noise, plain.seed)
+    assert job.data.workers == 1 and job.model.threads == 1   # one core a job, whatever the recipe
+    assert fleet.job_config(cfg, "star", 1, p) == fleet.job_config(cfg, "star", 1, cfg.experiment.params)
+    assert fleet.recipe_text(rod) == ("model.linear=[d, g, h] model.command_delay=0 control.delay_phase_deg=null "
+                                      "data.samples=60000")
+
+
+@pytest.mark.parametrize("recipe, words", [
+    ("zeppelin={model:{linear:[d]}}", ["recipes.zeppelin", "not a drone", "flower"]),
+    ("leaf={sim:{element:linear}}", ["recipes.leaf.sim", "only data, model, control"]),
+    ("leaf={model:{linearr:[d]}}", ["recipes.leaf.model", "linearr"]),
+    ("leaf={model:{epochs:0}}", ["recipes.leaf", "model.epochs"]),
+    # a recipe is checked with the run's other keys: the fleet's delay bound needs the delay it drops
+    ("leaf={model:{command_delay:0}}", ["recipes.leaf", "control.delay_phase_deg", "model.command_delay is 0"]),
+])
+def test_a_bad_recipe_is_named_before_anything_runs(tmp_path, recipe, words):
+    with pytest.raises(UserError) as err:   # a drone's recipe is added as Hydra adds a key: with +
+        run_experiment(make_cfg("experiment=fleet", f"+experiment.params.recipes.{recipe}"), tmp_path / "run")
     for w in words:
         assert w in str(err.value), str(err.value)
     assert not (tmp_path / "run").exists()
