@@ -187,14 +187,14 @@ def test_a_drone_s_recipe_changes_its_learning_and_control_alone():
     rod = {"model": {"linear": ["d", "g", "h"], "command_delay": 0}, "control": {"delay_phase_deg": None},
            "data": {"samples": 60000}}
     cfg = make_config("experiment=fleet")
-    p = replace(cfg.experiment.params, recipes={"rod": rod})
-    job, plain = fleet.job_config(cfg, "rod", 1, p), fleet.job_config(cfg, "rod", 1, cfg.experiment.params)
+    p, none = replace(cfg.experiment.params, recipes={"rod": rod}), replace(cfg.experiment.params, recipes={})
+    job, plain = fleet.job_config(cfg, "rod", 1, p), fleet.job_config(cfg, "rod", 1, none)
     assert job.model.linear == ["d", "g", "h"] and job.model.command_delay == 0 and job.control.delay_phase_deg is None
     assert job.data.samples == 60000 and plain.data.samples == 1500 * 11   # the recipe's samples win over the rule
     assert job.model.frame == plain.model.frame and job.control.r == plain.control.r   # the rest as the run's
     assert (job.drone, job.sim, job.noise, job.seed) == (plain.drone, plain.sim, plain.noise, plain.seed)
     assert job.data.workers == 1 and job.model.threads == 1   # one core a job, whatever the recipe
-    assert fleet.job_config(cfg, "star", 1, p) == fleet.job_config(cfg, "star", 1, cfg.experiment.params)
+    assert fleet.job_config(cfg, "star", 1, p) == fleet.job_config(cfg, "star", 1, none)
     assert fleet.recipe_text(rod) == ("model.linear=[d, g, h] model.command_delay=0 control.delay_phase_deg=null "
                                       "data.samples=60000")
 
