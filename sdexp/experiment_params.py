@@ -176,6 +176,10 @@ def check_recipes(recipes: dict) -> None:
             if section not in RECIPE_SECTIONS:
                 raise UserError(f"{where}.{section}: a recipe changes only {', '.join(RECIPE_SECTIONS)} "
                                 "(the world and the tasks are the same for every drone's method)")
+            if not isinstance(keys, dict):
+                first = dataclasses.fields(schema[section])[0].name
+                raise UserError(f"{where}.{section} = {keys!r}: allowed a mapping of {section} keys, "
+                                f"e.g. {{{first}: ...}}")
             check_schema(keys, schema[section], f"{where}.{section}.")
             try:   # the values' types
                 OmegaConf.merge(OmegaConf.structured(schema[section]), keys)

@@ -203,6 +203,7 @@ def test_a_drone_s_recipe_changes_its_learning_and_control_alone():
     ("zeppelin={model:{linear:[d]}}", ["recipes.zeppelin", "not a drone", "flower"]),
     ("leaf={sim:{element:linear}}", ["recipes.leaf.sim", "only data, model, control"]),
     ("leaf={model:{linearr:[d]}}", ["recipes.leaf.model", "linearr"]),
+    ("leaf.model=3", ["recipes.leaf.model = 3", "a mapping of model keys"]),
     ("leaf={model:{epochs:0}}", ["recipes.leaf", "model.epochs"]),
     # a recipe is checked with the run's other keys: the fleet's delay bound needs the delay it drops
     ("leaf={model:{command_delay:0}}", ["recipes.leaf", "control.delay_phase_deg", "model.command_delay is 0"]),
