@@ -355,8 +355,13 @@ def _order(names: list[str], seeds: list[int]) -> list[tuple[str, int]]:
 
 
 def check(run: Run) -> None:
-    """Every drone's recipe, merged into its config, within range before anything is written."""
+    """Every drone's recipe names a drone and, merged into its config, is within range, before
+    anything is written."""
+    from sdexp.errors import UserError
+    drones = conf.names("drone")
     for name in run.params.recipes:
+        if name not in drones:
+            raise UserError(f"experiment.params.recipes.{name}: {name!r} is not a drone: allowed {', '.join(drones)}")
         job_config(run.cfg, name, 0, run.params)
 
 
