@@ -138,12 +138,11 @@ class FleetParams(Params):
     deform_hold_seconds: float = param(3.0, nonnegative())
     workers: int = param(2, positive())              # (drone, seed) jobs side by side, one core each
     # per drone, the learning and control keys it learns and flies with instead of the run's
-    # (sdexp.eval.fleet.with_recipe), e.g. {rod: {model: {linear: [d, g, h]}}}: the paper trains
+    # (sdexp.eval.fleet.with_recipe, which checks them), e.g. {rod: {model: {linear: [d, g, h]}}}: the paper trains
     # each design on its own; the world (drone, sim, noise) and the tasks are the same for all
     recipes: Dict[str, Dict[str, Any]] = param({})
 
     def check(self) -> None:
-        check_recipes(self.recipes)
         for key, value, allowed in (("tasks", self.tasks, FLEET_TASKS),
                                     ("controllers", self.controllers, FLEET_CONTROLLERS)):
             stray = [v for v in value if v not in allowed]
@@ -152,35 +151,6 @@ class FleetParams(Params):
                                 + (f" ({stray[0]!r} is none of them)" if stray else ""))
         if len(set(self.seeds)) != len(self.seeds):
             raise UserError(f"{PREFIX}seeds = {self.seeds!r}: allowed distinct seeds")
-
-
-RECIPE_SECTIONS = ("data", "model", "control")   # the learning and control side, never the world
-
-
-def check_recipes(recipes: dict) -> None:
-    """Each recipe changes only keys of data, model and control that exist, with values of their
-    type (its drone's name and the ranges are checked on the drone's whole config: sdexp.eval.fleet)."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    from sdexp.config import ControlConfig, DataConfig, ModelConfig, check_schema
-    from sdexp.errors import one_line
-    schema = {"data": DataConfig, "model": ModelConfig, "control": ControlConfig}
-    for drone, recipe in recipes.items():
-        where = f"{PREFIX}recipes.{drone}"
-        for section, keys in (recipe or {}).items():
-            if section not in RECIPE_SECTIONS:
-                raise UserError(f"{where}.{section}: a recipe changes only {', '.join(RECIPE_SECTIONS)} "
-                                "(the world and the tasks are the same for every drone's method)")
-            if not isinstance(keys, dict):
-                first = dataclasses.fields(schema[section])[0].name
-                raise UserError(f"{where}.{section} = {keys!r}: allowed a mapping of {section} keys, "
-                                f"e.g. {{{first}: ...}}")
-            check_schema(keys, schema[section], f"{where}.{section}.")
-            try:   # the values' types
-                OmegaConf.merge(OmegaConf.structured(schema[section]), keys)
-            except OmegaConfBaseException as err:
-                raise UserError(f"{where}.{section}: {one_line(err)}") from None
 
 
 @dataclass

@@ -27,6 +27,7 @@ against its tolerance, a cross for failures) and metrics with the fleet's wall t
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -261,18 +262,35 @@ def job_config(cfg, name: str, seed: int, p: FleetParams):
                    sim=replace(job.sim, threads=1))
 
 
+RECIPE_SECTIONS = ("data", "model", "control")   # the learning and control side, never the world
+
+
 def with_recipe(cfg, recipe: dict | None, where: str):
     """``cfg`` with ``recipe``'s keys merged into its data, model and control sections
     (experiment.params.recipes: what one drone learns and flies with), checked as a whole config
-    is; a value out of range is a UserError naming ``where``."""
+    is: a section other than those, a key they lack, a value of the wrong type or out of range is
+    a UserError naming ``where``."""
     if not recipe:
         return cfg
     from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
 
-    from sdexp.config import validate
-    from sdexp.errors import UserError
-    sections = {section: OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(getattr(cfg, section)), keys))
-                for section, keys in recipe.items()}
+    from sdexp.config import check_schema, validate
+    from sdexp.errors import UserError, one_line
+    sections = {}
+    for section, keys in recipe.items():
+        if section not in RECIPE_SECTIONS:
+            raise UserError(f"{where}.{section}: a recipe changes only {', '.join(RECIPE_SECTIONS)} "
+                            "(the world and the tasks are the same for every drone's method)")
+        own = getattr(cfg, section)
+        if not isinstance(keys, dict):
+            raise UserError(f"{where}.{section} = {keys!r}: allowed a mapping of {section} keys, "
+                            f"e.g. {{{dataclasses.fields(own)[0].name}: ...}}")
+        check_schema(keys, type(own), f"{where}.{section}.")
+        try:
+            sections[section] = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(own), keys))
+        except OmegaConfBaseException as err:   # a value of the wrong type
+            raise UserError(f"{where}.{section}: {one_line(err)}") from None
     out = replace(cfg, **sections)
     try:
         validate(out)
