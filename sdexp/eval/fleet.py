@@ -314,6 +314,34 @@ def job_path(jobs_dir: Path, name: str, seed: int) -> Path:
     return jobs_dir / f"{name}_seed{seed}.json"
 
 
+# FleetParams fields that do not change what one job flies (which jobs there are, how many run at
+# once; the other drones' recipes)
+NOT_JOB_PARAMS = ("drones", "seeds", "workers", "recipes")
+
+
+def job_key(job_cfg, p: FleetParams) -> str:
+    """What makes a job's result: its resolved config (the drone, its recipe, the world, the data,
+    nets and controllers) and the tasks' params; the run folder, the cores and the cache do not."""
+    from sdexp.cache import config_key, key_of
+    job = {f.name: config_key(getattr(job_cfg, f.name)) for f in dataclasses.fields(job_cfg)
+           if f.name not in ("cache_dir", "cores", "sweep_dir", "experiment")}
+    params = {k: v for k, v in config_key(p).items() if k not in NOT_JOB_PARAMS}
+    return key_of("fleet-job", 1, {"job": job, "params": params})
+
+
+def done_job(path: Path, key: str, recipe: str) -> dict | None:
+    """The result a finished job wrote for this ``key``, or None (not run, damaged, or made with
+    another config: it is flown again). A result written before jobs were keyed (no ``key``) is
+    taken when its recipe matches: those runs resumed only with the drones' configs unchanged."""
+    try:
+        done = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if "key" not in done:
+        return done if done.get("recipe", "") == recipe else None
+    return done if done["key"] == key else None
+
+
 def write_job(path: Path, result: dict) -> None:
     """A job's result, written whole (a resumed fleet reads it back instead of flying again)."""
     from sdexp.files import atomic_write
@@ -327,7 +355,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
     from sdexp.eval.flights import Setup
 
     job_cfg = job_config(cfg, name, seed, p)
-    result = {"drone": name, "seed": int(seed), "samples": int(job_cfg.data.samples),
+    result = {"drone": name, "seed": int(seed), "key": job_key(job_cfg, p), "samples": int(job_cfg.data.samples),
               "recipe": recipe_text(p.recipes.get(name)), "rows": [],
               "physics": None, "error": None, "seconds": {}}
     phase, t0 = "learning (data and nets)", time.perf_counter()
@@ -392,12 +420,14 @@ def run(run: Run) -> dict:
     names = list(p.drones or drone_names())
     jobs_dir = out_dir / "jobs"
     jobs_dir.mkdir(exist_ok=True)
-    todo, results = [], {}
+    todo, results, stale = [], {}, []
     for name, seed in _order(names, list(p.seeds)):
         path = job_path(jobs_dir, name, seed)
-        if path.exists():
-            results[(name, seed)] = json.loads(path.read_text())
+        done = done_job(path, job_key(job_config(cfg, name, seed, p), p), recipe_text(p.recipes.get(name)))
+        if done is not None:
+            results[(name, seed)] = done
         else:
+            stale += [f"{name} seed {seed}"] if path.exists() else []
             todo.append((cfg, name, seed, p, str(path)))
     rule = ("data.samples" if p.samples_per_channel is None
             else f"{p.samples_per_channel} a state channel, at least {p.min_samples}")
@@ -405,6 +435,8 @@ def run(run: Run) -> dict:
         f"{n} {job_config(cfg, n, 0, p).data.samples}" for n in names))
     if results:
         log.info(f"sdexp: fleet: resuming with {len(results)} of {len(results) + len(todo)} jobs done")
+    if stale:
+        log.info(f"sdexp: fleet: flown again, their results made with another config: {', '.join(stale)}")
     t0 = time.perf_counter()
     with Phase("fleet jobs (drone x seed)", total=len(todo), unit="job") as bar:
         workers = max(1, min(int(p.workers), len(todo)))

@@ -199,6 +199,28 @@ def test_a_drone_s_recipe_changes_its_learning_and_control_alone():
                                       "data.samples=60000")
 
 
+def test_a_job_resumes_only_from_a_result_made_with_its_config(tmp_path):
+    cfg = make_config("experiment=fleet")
+    p = cfg.experiment.params
+    key = fleet.job_key(fleet.job_config(cfg, "rainbow", 0, p), p)
+    def key_with(**changes):
+        q = replace(p, **changes)
+        return fleet.job_key(fleet.job_config(cfg, "rainbow", 0, q), q)
+    # what this job flies: its own recipe, the tasks' params, the seed
+    assert key_with(recipes={**p.recipes, "rainbow": {"control": {"r": 50.0}}}) != key
+    assert key_with(speed=0.4) != key and fleet.job_key(fleet.job_config(cfg, "rainbow", 1, p), p) != key
+    # ... not another drone's recipe, how many jobs run at once, or which other drones fly
+    assert key_with(recipes={**p.recipes, "rod": {"data": {"samples": 100}}}) == key
+    assert key_with(workers=1, drones=["rainbow"], seeds=[0]) == key
+    path, recipe = tmp_path / "rainbow_seed0.json", fleet.recipe_text(p.recipes.get("rainbow"))
+    for written, kept in (({"key": key}, True), ({"key": "fleet-job-other"}, False),
+                          ({"recipe": recipe}, True), ({"recipe": "control.r=1"}, False)):   # unkeyed: the recipe
+        path.write_text(json.dumps(written))
+        assert (fleet.done_job(path, key, recipe) == written) is kept, written
+    path.write_text('{"key": ')   # a damaged file is flown again
+    assert fleet.done_job(path, key, recipe) is None and fleet.done_job(tmp_path / "none.json", key, recipe) is None
+
+
 @pytest.mark.parametrize("recipe, words", [
     ("zeppelin={model:{linear:[d]}}", ["recipes.zeppelin", "not a drone", "flower"]),
     ("leaf={sim:{element:linear}}", ["recipes.leaf.sim", "only data, model, control"]),
