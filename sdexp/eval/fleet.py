@@ -438,7 +438,7 @@ def run(run: Run) -> dict:
     if stale:
         log.info(f"sdexp: fleet: flown again, their results made with another config: {', '.join(stale)}")
     t0 = time.perf_counter()
-    with Phase("fleet jobs (drone x seed)", total=len(todo), unit="job") as bar:
+    with Phase("fleet jobs (drone x seed)", total=len(todo), unit="jobs") as bar:
         workers = max(1, min(int(p.workers), len(todo)))
         if workers == 1:
             done = [fly_job(*job, report=bar.update) for job in todo]
