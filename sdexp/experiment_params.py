@@ -277,6 +277,16 @@ class DiscrepancyBenchParams(Params):
 class ReportParams(Params):
     sweep_dir: Optional[str] = "${sweep_dir}"   # the sweep folder to aggregate (required)
     confidence: float = _param(0.95, lambda v: 0 < v < 1, "in (0, 1)")   # of the two-sided Student-t interval
+    # two metrics, [x, y], and optionally a boolean third that fills a point where true: scatter.png, one
+    # point per job, a colour per group, e.g. [wing_pitch_change_deg, max_z_deviation_m, passed]
+    scatter: Optional[List[str]] = None
+    scatter_lines: Optional[List[Optional[float]]] = None   # dashed at x = [0] and y = [1] (null: none), e.g. [73, 0.05]
+
+    def check(self) -> None:
+        for key, value, sizes, what in (("scatter", self.scatter, (2, 3), "[x, y] or [x, y, a boolean metric]"),
+                                        ("scatter_lines", self.scatter_lines, (2,), "[x or null, y or null]")):
+            if value is not None and len(value) not in sizes:
+                raise UserError(f"{PREFIX}{key} = {list(value)!r}: allowed {what}, or null")
 
 
 # experiment name (its conf/experiment/<name>.yaml) -> the schema of its params

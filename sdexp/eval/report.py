@@ -33,6 +33,8 @@ def check(run: Run) -> None:
     """Before the run folder is written: the sweep folder exists and holds finished jobs."""
     sweep_dir, _ = _params(run.params)
     stats.find_jobs(sweep_dir, run.out_dir)
+    if run.params.scatter:
+        stats.check_metrics(stats.grouped_jobs(sweep_dir, run.out_dir)[0], list(run.params.scatter), sweep_dir)
 
 
 def run(run: Run) -> dict:
@@ -40,6 +42,10 @@ def run(run: Run) -> dict:
     table = stats.aggregate(sweep_dir, confidence, run.out_dir)
     csv = run.table(table, "stats", float_format="%.6g")
     stats.plot(table, run.path("stats.png"), title=sweep_dir.resolve().name)
+    if run.params.scatter:
+        stats.scatter(sweep_dir, list(run.params.scatter), run.path("scatter.png"),
+                      None if run.params.scatter_lines is None else list(run.params.scatter_lines),
+                      run.out_dir, sweep_dir.resolve().name)
     groups = list(dict.fromkeys(table["group"]))
     jobs = int(table.drop_duplicates("group")["jobs"].sum()) if len(table) else 0
     log.info(f"sdexp: report over {jobs} jobs in {len(groups)} group{'s' if len(groups) != 1 else ''} "

@@ -152,19 +152,11 @@ def _is_number(v) -> bool:
 def aggregate(sweep_dir: str | Path, confidence: float = 0.95, own: Path | None = None) -> pd.DataFrame:
     """One row per (group, metric): the group's config values (a column per dotted key), kind (number | count), n, mean,
     std, ci_low, ci_high, true (counts), summary and the method in words."""
-    folders = find_jobs(sweep_dir, own)
-    loaded = [load_job(f) for f in folders]
-    varying, values = group_jobs([c for c, _ in loaded])
-    names = short_names(varying)
-    groups: dict[tuple, list[int]] = {}
-    for i, v in enumerate(values):
-        groups.setdefault(v, []).append(i)
+    loaded, varying, groups = grouped_jobs(sweep_dir, own)
     pct = f"{confidence:.0%}"
     t_method = f"Student t {pct}: mean +- t({0.5 + confidence / 2:g}, n-1) * s / sqrt(n), s the sample std"
     rows = []
-    for gvals, members in sorted(groups.items(), key=lambda kv: _sort_key(kv[0])):
-        label = ", ".join(f"{n}={v}" for n, v in zip(names, gvals)) or str(loaded[members[0]][0].get(
-            "experiment.name", "all"))
+    for (label, gvals), members in groups.items():
         seeds = sorted({loaded[i][0].get("seed") for i in members}, key=str)
         metrics = []
         for i in members:
@@ -190,6 +182,23 @@ def aggregate(sweep_dir: str | Path, confidence: float = 0.95, own: Path | None 
     columns = ["group", *varying, "metric", "kind", "jobs", "seeds", "n", "mean", "std", "ci_low", "ci_high",
                "true", "summary", "method"]
     return pd.DataFrame(rows, columns=columns)
+
+
+def grouped_jobs(sweep_dir: str | Path, own: Path | None = None) -> tuple[list, list[str], dict]:
+    """(every finished job's (flat config, flat metrics), the varying keys, {(label, values): job
+    indices}) in the groups' numeric order; a label reads "q_s=100, n=5" (the experiment's name
+    when nothing varies but the seed)."""
+    loaded = [load_job(f) for f in find_jobs(sweep_dir, own)]
+    varying, values = group_jobs([c for c, _ in loaded])
+    names = short_names(varying)
+    members: dict[tuple, list[int]] = {}
+    for i, v in enumerate(values):
+        members.setdefault(v, []).append(i)
+    groups = {}
+    for gvals, idx in sorted(members.items(), key=lambda kv: _sort_key(kv[0])):
+        label = ", ".join(f"{n}={v}" for n, v in zip(names, gvals)) or str(loaded[idx[0]][0].get("experiment.name", "all"))
+        groups[(label, gvals)] = idx
+    return loaded, varying, groups
 
 
 def _sort_key(values: tuple) -> tuple:
@@ -278,3 +287,53 @@ def plot(table: pd.DataFrame, path: Path, title: str = "", max_panels: int = 24)
     fig.suptitle(f"{title}  (mean and {method} interval, up to n = {n} jobs per point)".strip(), fontsize=12)
     fig.tight_layout()
     save_figure(fig, path, dpi=120)
+
+
+def check_metrics(loaded: list, names: list[str], sweep_dir) -> None:
+    """Every metric of ``names`` is some job's (``loaded``: grouped_jobs' first), else a UserError
+    listing the numeric and boolean metrics the jobs have."""
+    have = sorted({m for _, met in loaded for m, v in met.items() if _is_number(v) or isinstance(v, bool)})
+    for metric in names:
+        if metric not in have:
+            raise UserError(f"experiment.params.scatter: no job of {sweep_dir} has the metric {metric!r}; "
+                            f"its numeric and boolean metrics: {', '.join(have)}")
+
+
+def scatter(sweep_dir: str | Path, axes: list[str], path: Path, lines: list | None = None,
+            own: Path | None = None, title: str = "") -> int:
+    """One point per job: metric ``axes[0]`` against ``axes[1]``, a colour per group; with a third,
+    boolean metric (e.g. ``passed``) a point is filled where it is true, hollow where not. ``lines``:
+    reference values drawn dashed at x = lines[0] and y = lines[1] (None: none), e.g. a paper's
+    figures. A frontier (what one figure costs of another over the settings tried) reads at a
+    glance. Returns the points drawn; a metric no job has is a UserError listing those that exist."""
+    from sdexp.figures import pyplot, save_figure
+    loaded, _, groups = grouped_jobs(sweep_dir, own)
+    check_metrics(loaded, axes, sweep_dir)
+    x_name, y_name, mark = (list(axes) + [None])[:3]
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 5))
+    drawn = 0
+    for k, ((label, _), idx) in enumerate(groups.items()):
+        colour = f"C{k % 10}"
+        for i in idx:
+            met = loaded[i][1]
+            if not (_is_number(met.get(x_name)) and _is_number(met.get(y_name))):
+                continue
+            filled = mark is None or bool(met.get(mark))
+            ax.scatter(met[x_name], met[y_name], s=46, edgecolors=colour, linewidths=1.5,
+                       facecolors=colour if filled else "none", label=label if i == idx[0] else None)
+            drawn += 1
+    for value, draw in zip(lines or [], (ax.axvline, ax.axhline)):
+        if value is not None:
+            draw(float(value), color="0.4", ls="--", lw=1)
+    ax.set_xlabel(x_name)
+    ax.set_ylabel(y_name)
+    ax.grid(alpha=0.3)
+    if len(groups) > 1:
+        ax.legend(fontsize=8, title="filled: " + mark if mark else None, title_fontsize=8)
+    elif mark:
+        ax.set_title(f"filled: {mark}", fontsize=9)
+    fig.suptitle(f"{title}: one point per job".strip(": "), fontsize=11)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    return drawn

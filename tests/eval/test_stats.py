@@ -114,3 +114,33 @@ def test_the_report_command_on_a_wrong_folder_is_one_line_exit_2(tmp_path, args)
     assert res.returncode == EXIT_USER_ERROR and "Traceback" not in err and len(err.splitlines()) == 1, err
     assert (str(tmp_path / "empty") if args else "sweep_dir") in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]   # no run folder left behind
+
+
+def test_a_scatter_draws_one_point_per_job_and_names_a_metric_no_job_has(sweep, tmp_path):
+    path = tmp_path / "scatter.png"
+    assert stats.scatter(sweep, ["ours_survival_time", "ours_final_error", "ours_survived"], path, [10.0, 1.0]) == 6
+    assert path.stat().st_size > 0
+    with pytest.raises(UserError) as err:
+        stats.scatter(sweep, ["ours_final_error", "ours_fold"], tmp_path / "no.png")
+    assert "'ours_fold'" in str(err.value) and "ours_final_error" in str(err.value)
+    assert not (tmp_path / "no.png").exists()
+
+
+def test_the_report_command_checks_its_scatter_before_writing(sweep, tmp_path):
+    res = sdexp("experiment=report", f"sweep_dir={sweep}", "experiment.params.scatter=[ours_final_error,fold]",
+                f"hydra.run.dir={tmp_path / 'report'}", cwd=tmp_path)
+    err = res.stderr.strip()
+    assert res.returncode == EXIT_USER_ERROR and "'fold'" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "report").exists()
+    res = sdexp("experiment=report", f"sweep_dir={sweep}", "experiment.params.scatter=[ours_survival_time,ours_final_error]",
+                "experiment.params.scatter_lines=[null,1.0]", f"hydra.run.dir={tmp_path / 'report'}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "report" / "scatter.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("override, words", [("experiment.params.scatter=[ours_final_error]", "[x, y]"),
+                                             ("experiment.params.scatter_lines=[1,2,3]", "scatter_lines")])
+def test_a_scatter_of_the_wrong_size_is_named(sweep, tmp_path, override, words):
+    res = sdexp("experiment=report", f"sweep_dir={sweep}", override, f"hydra.run.dir={tmp_path / 'report'}", cwd=tmp_path)
+    err = res.stderr.strip()
+    assert res.returncode == EXIT_USER_ERROR and words in err and len(err.splitlines()) == 1, err
