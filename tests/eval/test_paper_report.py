@@ -112,3 +112,25 @@ def test_runs_flown_before_a_simulator_change_are_named(tmp_path):
     (tmp_path / "sota_seeds" / "seed1" / "cli.log").unlink()   # no log: counted as before
     line = next(x for x in render(tmp_path).splitlines() if x.startswith("Flown before the simulator changed"))
     assert "sota (2 runs)" in line
+
+
+def _obstacle_run(folder, seed, q_s, z, fold, z_dev, passed, survived=True):
+    folder.mkdir(parents=True)
+    (folder / "metrics.json").write_text(json.dumps({
+        "wing_pitch_change_deg": fold, "width_reduction_percent": 40.0 if fold > 73 else 25.0,
+        "max_z_deviation_m": z_dev, "passed": passed, "hit_obstacle": not passed, "flight_survived": survived,
+        "flight_failure": "" if survived else "tilt"}))
+    config = {"seed": seed, "sim": {"element": "quadratic"}, "control": {"q_s": q_s, "q_p_axes": [1, 1, z]},
+              "experiment": {"name": "obstacle"}}
+    (folder / "config.yaml").write_text(yaml.safe_dump(config))
+
+
+def test_the_obstacle_frontier_counts_each_setting_over_its_seeds(tmp_path):
+    _obstacle_run(tmp_path / "obstacle", 0, 100, 50, 77.0, 0.04, False)
+    grid = tmp_path / "obstacle_frontier_grid"
+    _obstacle_run(grid / "qs100_z50_seed0", 0, 100, 50, 77.0, 0.04, True)
+    _obstacle_run(grid / "qs100_z50_seed1", 1, 100, 50, 90.0, 0.30, False, survived=False)
+    _obstacle_run(grid / "qs300_z50_seed0", 0, 300, 50, 65.0, 0.03, False)
+    rows = [line for line in render(tmp_path).splitlines() if line.startswith(("| 100 |", "| 300 |"))]
+    assert rows == ["| 100 | 50 | 2 | 2 | 1 | 1 | 1 | 77-90 | 0.04-0.30 |",
+                    "| 300 | 50 | 1 | 0 | 1 | 0 | 0 | 65 | 0.03 |"]
