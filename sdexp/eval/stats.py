@@ -321,8 +321,9 @@ def scatter(sweep_dir: str | Path, axes: list[str], path: Path, lines: list | No
                 continue
             filled = mark is None or bool(met.get(mark))
             ax.scatter(met[x_name], met[y_name], s=46, edgecolors=colour, linewidths=1.5,
-                       facecolors=colour if filled else "none", label=label if i == idx[0] else None)
+                       facecolors=colour if filled else "none")
             drawn += 1
+        ax.scatter([], [], s=46, color=colour, label=label)   # the legend's marker: the colour alone
     for value, draw in zip(lines or [], (ax.axvline, ax.axhline)):
         if value is not None:
             draw(float(value), color="0.4", ls="--", lw=1)
