@@ -55,7 +55,7 @@ def find_jobs(sweep_dir: str | Path, own: Path | None = None) -> list[Path]:
                           for p in root.rglob(pattern)}):
         if any(part.startswith(".") for part in folder.relative_to(root).parts):
             continue
-        if _experiment_of(folder) == "report" or (own is not None and folder.resolve() == own.resolve()):
+        if experiment_of(folder) == "report" or (own is not None and folder.resolve() == own.resolve()):
             continue
         (jobs if (folder / "metrics.json").exists() else unfinished).append(folder)
     if unfinished:
@@ -70,7 +70,8 @@ def find_jobs(sweep_dir: str | Path, own: Path | None = None) -> list[Path]:
     return jobs
 
 
-def _experiment_of(folder: Path) -> str | None:
+def experiment_of(folder: Path) -> str | None:
+    """The experiment a run folder's config.yaml names (None where it cannot be read)."""
     try:
         from omegaconf import OmegaConf
         return OmegaConf.select(OmegaConf.load(folder / "config.yaml"), "experiment.name")
