@@ -217,30 +217,35 @@ FRONTIER = "obstacle_frontier_grid"   # the obstacle's sweep over the bend weigh
 
 
 def obstacle_frontier(results: Path) -> list[str]:
-    """The frontier the obstacle's gains trade along (every job of ``results/obstacle_frontier_grid``):
-    per setting, how many seeds fold and narrow past the paper's, hold Z within 5 cm, pass, and
-    are lost. Nothing when the sweep is not committed."""
-    root = results / FRONTIER
-    if not root.is_dir():
-        return []
+    """The frontier the obstacle's gains trade along: every job of ``results/obstacle_frontier_grid``
+    (the seeds the settings were screened on) and of ``..._grid_seeds`` (held out), per setting and
+    set of seeds: how many fold and narrow past the paper's, hold Z within 5 cm, pass, do all four,
+    and are lost. Nothing when the sweep is not committed."""
     settings: dict[tuple, list] = {}
-    for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        if experiment_of(folder) == "report":   # the sweep's statistics and scatter.png, not a flight
-            continue
-        run = committed.load(folder, "obstacle")
-        control = run.config["control"]
-        settings.setdefault((float(control["q_s"]), float(control["q_p_axes"][2])), []).append(run.metrics)
-    lines = [f"The frontier (`results/{FRONTIER}/`: ours' bend weight q_s and Z's weight over seeds; "
-             f"`scatter.png` from `sdexp experiment=report`): seeds that fold > 73 deg and narrow > 30%, hold Z "
-             "within 5 cm, pass, do all four; the fold's and Z's ranges.\n",
+    for order, (name, which) in enumerate(((FRONTIER, "screened"), (f"{FRONTIER}_seeds", "held out"))):
+        root = results / name
+        for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")) if root.is_dir() else []:
+            if experiment_of(folder) == "report":   # the sweep's statistics and scatter.png, not a flight
+                continue
+            run = committed.load(folder, "obstacle")
+            control = run.config["control"]
+            settings.setdefault((float(control["q_s"]), float(control["q_p_axes"][2]), order, which), []).append(run)
+    if not settings:
+        return []
+    lines = [f"The frontier (`results/{FRONTIER}/`, seeds screened, and `_seeds/`, held out: ours' bend weight q_s "
+             f"and Z's weight; `scatter.png` from `sdexp experiment=report`): seeds that fold > 73 deg and narrow > 30%, "
+             "hold Z within 5 cm, pass, do all four; the fold's and Z's ranges.\n",
              "| q_s | Z weight (x q_p) | seeds | fold and narrow | Z within 5 cm | passed | all four (the paper's) | lost | fold (deg) | max Z deviation (m) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for (q_s, z), ms in sorted(settings.items()):
+    for (q_s, z, _, which), rs in sorted(settings.items()):
+        ms = [r.metrics for r in rs]
         fold = [m["wing_pitch_change_deg"] for m in ms]
         z_dev = [m["max_z_deviation_m"] for m in ms]
         folds = [m["wing_pitch_change_deg"] > 73 and m["width_reduction_percent"] > 30 for m in ms]
         every = sum(f and m["max_z_deviation_m"] <= 0.05 and bool(m["passed"]) for f, m in zip(folds, ms))
-        lines.append(f"| {q_s:g} | {z:g} | {len(ms)} | {sum(folds)} | {sum(v <= 0.05 for v in z_dev)} | "
+        seeds = sorted(r.seed for r in rs)
+        seeds_span = f"{seeds[0]}" if seeds[0] == seeds[-1] else f"{seeds[0]}-{seeds[-1]}"
+        lines.append(f"| {q_s:g} | {z:g} | {seeds_span} ({which}) | {sum(folds)} | {sum(v <= 0.05 for v in z_dev)} | "
                      f"{sum(bool(m['passed']) for m in ms)} | {every} | {sum(not m['flight_survived'] for m in ms)} | "
                      f"{span(fold, 0)} | {span(z_dev)} |")
     return lines + [""]

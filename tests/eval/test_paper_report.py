@@ -131,6 +131,8 @@ def test_the_obstacle_frontier_counts_each_setting_over_its_seeds(tmp_path):
     _obstacle_run(grid / "qs100_z50_seed0", 0, 100, 50, 77.0, 0.04, True)
     _obstacle_run(grid / "qs100_z50_seed1", 1, 100, 50, 90.0, 0.30, False, survived=False)
     _obstacle_run(grid / "qs300_z50_seed0", 0, 300, 50, 65.0, 0.03, False)
+    _obstacle_run(tmp_path / "obstacle_frontier_grid_seeds" / "qs100_z50_seed5", 5, 100, 50, 80.0, 0.03, True)
     rows = [line for line in render(tmp_path).splitlines() if line.startswith(("| 100 |", "| 300 |"))]
-    assert rows == ["| 100 | 50 | 2 | 2 | 1 | 1 | 1 | 1 | 77-90 | 0.04-0.30 |",
-                    "| 300 | 50 | 1 | 0 | 1 | 0 | 0 | 0 | 65 | 0.03 |"]
+    assert rows == ["| 100 | 50 | 0-1 (screened) | 2 | 1 | 1 | 1 | 1 | 77-90 | 0.04-0.30 |",
+                    "| 100 | 50 | 5 (held out) | 1 | 1 | 1 | 1 | 0 | 80 | 0.03 |",
+                    "| 300 | 50 | 0 (screened) | 0 | 1 | 0 | 0 | 0 | 65 | 0.03 |"]
