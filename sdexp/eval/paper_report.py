@@ -383,7 +383,7 @@ def _fleet_hours(folder: Path, metrics: dict) -> str:
     calls = json.loads(path.read_text()) if path.is_file() else [{"wall_seconds": metrics["wall_seconds"], "jobs_run": 1}]
     flew = sum(c["wall_seconds"] for c in calls if c["jobs_run"])
     filled = sum(c["wall_seconds"] for c in calls if not c["jobs_run"])
-    return f"{flew / 3600:.1f} h" + (f" (and {filled / 60:.0f} min of diagnostics filled in later from the caches)" if filled else "")
+    return f"{flew / 3600:.1f} h" + (f" (and {filled / 60:.0f} min of diagnostics filled in later from the caches)" if filled >= 60 else "")
 
 
 def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
