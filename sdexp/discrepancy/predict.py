@@ -4,10 +4,12 @@ The logs hold sensor channels only, so a measured state is turned back into a me
 the rest mesh posed rigidly at (p, e) with the rigid velocity of (p_dot, e_dot), plus a bend
 field linear in s (its rate left out: see pose). The linear map is calibrated once per drone
 on a nominal, noise-free flight of the simulator itself (least squares of body-frame vertex
-displacements on s), which is knowledge of the model, not of the logs. The map's offset, the
-deformation that s does not see (the sag under the mean load), is a static response and scales
-with the compliance of the simulator being tested (a stiffness candidate), so it re-initialises
-near that simulator's own equilibrium rather than exciting a vibration the logs never had. Two
+displacements on s), which is knowledge of the model, not of the logs. A simulator whose effects
+change the body itself (a payload, a stiffness or damping change: ``modify_model``) gets a map
+calibrated on that body (``model_effects``), so a window re-initialises near that simulator's own
+shape under the measured bends rather than the nominal body's: on the converged flower a 0.25 kg
+payload's own simulator replayed its logs at 9x the noise floor through the nominal map and at
+1.2x through its own (docs/discrepancy_workflow.md). Two
 correction passes then shift the inputs until the posed mesh, read through the sensor pipeline
 of the simulator being tested (its sensor effects included), reproduces the measured channels.
 """
@@ -47,10 +49,12 @@ class BendMap:
     def local(self, s: np.ndarray) -> np.ndarray:
         return self.rest_local + (s @ self.A + self.c).reshape(self.rest_local.shape)
 
-    def stiffer(self, k: float) -> "BendMap":
-        """The map for a material k times stiffer: with s given, linear statics leave the shape
-        of the bend (A) and shrink the unseen rest (c) by 1/k."""
-        return self if k == 1.0 else BendMap(self.rest_local, self.A, self.c / k)
+
+def model_effects(entries) -> list:
+    """The entries (dicts or Effect objects) whose effect changes the body itself (overrides
+    ``modify_model``): what the bend map must be calibrated with."""
+    from sdexp.sim.physics.effects import build_effects, overrides
+    return [e for e, built in zip(entries, build_effects(entries)) if overrides(built, "modify_model")]
 
 
 def rest_local(drone) -> np.ndarray:
@@ -74,15 +78,16 @@ def fit_bend_map(drone, snapshots_x, states, ridge: float = 1e-6) -> BendMap:
 
 
 def calibrate_bend_map(drone, sim_cfg, cache_dir: str, cache_key: dict, seconds: float = 20.0,
-                       seed: int = 12345) -> BendMap:
-    """Fly the nominal, noise-free simulator (pilot + every manoeuvre) and fit the bend map;
-    cached under the drone and simulator configuration."""
+                       seed: int = 12345, effects=()) -> BendMap:
+    """Fly the noise-free simulator (pilot + every manoeuvre), nominal or with ``effects`` (those
+    that change the body: ``model_effects``), and fit the bend map; cached under the drone and
+    simulator configuration and the effects."""
     from sdexp.config import NoiseConfig
     from sdexp.discrepancy.record import MANOEUVRES, Pilot, plan_flight, start_pose
     from sdexp.sim.simulator import Simulator
 
     def make():
-        sim = Simulator(drone, sim_cfg, NoiseConfig(enabled=False), seed=seed, effects=[])
+        sim = Simulator(drone, sim_cfg, NoiseConfig(enabled=False), seed=seed, effects=list(effects))
         dt = sim.cfg.control_dt
         pilot = Pilot(drone, sim.cfg.gravity, dt=dt)
         xs, sts = [], []
@@ -101,7 +106,8 @@ def calibrate_bend_map(drone, sim_cfg, cache_dir: str, cache_key: dict, seconds:
         bm = fit_bend_map(drone, xs, sts)
         return {"rest_local": bm.rest_local, "A": bm.A, "c": bm.c}
 
-    arrays = cached_arrays(cache_dir, key_of("bendmap", BEND_FORMAT, cache_key), make)
+    key = {**cache_key, "effects": [e if isinstance(e, dict) else repr(e) for e in effects]} if effects else cache_key
+    arrays = cached_arrays(cache_dir, key_of("bendmap", BEND_FORMAT, key), make)
     return BendMap(arrays["rest_local"], arrays["A"], arrays["c"])
 
 
@@ -165,7 +171,6 @@ def predict_windows(sim, bend: BendMap, flight, starts, start_rows, horizon: int
     fails keeps its last state. ``before(w)`` runs before window w (a per-window parameter)."""
     C = flight.y.shape[1]
     layout = sim.drone.layout
-    bend = bend.stiffer(float(np.mean(sim.fem.mu / sim.drone.fem.mu)))
     out = np.empty((len(starts), horizon, C))
     for w, i0 in enumerate(starts):
         if before is not None:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sdexp.discrepancy.logs import angle_columns, channel_names
-from sdexp.discrepancy.predict import BendMap, predict_windows, residuals, wrap
+from sdexp.discrepancy.predict import BendMap, model_effects, predict_windows, residuals, wrap
 
 
 @dataclass
@@ -111,8 +111,10 @@ def prediction_model(noise_cfg) -> tuple:
 class Predictor:
     """Runs the simulator with given effects over a window set; counts its rollouts."""
 
-    def __init__(self, drone, sim_cfg, noise_cfg, bend: BendMap):
-        self.drone, self.bend = drone, bend
+    def __init__(self, drone, sim_cfg, noise_cfg, bend: BendMap, bend_for=None):
+        # bend_for(entries) -> the bend map of a body changed by those model effects (None: the
+        # nominal map for every simulator)
+        self.drone, self.bend, self.bend_for = drone, bend, bend_for
         self.sim_cfg = replace(sim_cfg, effects=[])
         self.noise, delay = prediction_model(noise_cfg)
         # the nominal model: the configured effects (a previous fit, say) and the output delay
@@ -125,14 +127,17 @@ class Predictor:
         the simulator; ``before(k)`` runs before window k of ``w`` (per-window parameters)."""
         from sdexp.sim.simulator import Simulator
         # random effects (gusts) at their expectation: no prediction knows a flight's draws
-        sim = Simulator(self.drone, self.sim_cfg, self.noise, seed=0, effects=self.base + list(effects), draws=False)
+        entries = self.base + list(effects)
+        sim = Simulator(self.drone, self.sim_cfg, self.noise, seed=0, effects=entries, draws=False)
+        changed = model_effects(entries) if self.bend_for is not None else []
+        bend = self.bend_for(changed) if changed else self.bend
         out = np.empty_like(w.measured)
         k = 0
         for f, s in zip(w.flights, w.starts):
             if len(s) == 0:
                 continue
             hook = None if before is None else (lambda j, k=k: before(k + j))
-            pred = predict_windows(sim, self.bend, f, s, w.start_rows[k:k + len(s)], w.horizon, w.history, hook)
+            pred = predict_windows(sim, bend, f, s, w.start_rows[k:k + len(s)], w.horizon, w.history, hook)
             out[k:k + len(s)] = residuals(pred, f, s, w.horizon, self.ang)
             k += len(s)
         self.rollouts += 1

@@ -116,10 +116,12 @@ def floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir: s
 
 
 def prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir: str):
-    """The model knowledge the workflow needs before it sees logs: bend map and noise floor."""
-    bend = calibrate_bend_map(drone, sim_cfg, cache_dir, model_key(drone_cfg, sim_cfg, noise_cfg))
+    """The model knowledge the workflow needs before it sees logs: the nominal bend map, the
+    calibration of a changed body's map (``bend_for``, each cached) and the noise floor."""
+    key = model_key(drone_cfg, sim_cfg, noise_cfg)
+    bend = calibrate_bend_map(drone, sim_cfg, cache_dir, key)
     r_floor, w_floor = floor_windows(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, bend, cache_dir)
-    return bend, r_floor, w_floor
+    return bend, r_floor, w_floor, lambda effects: calibrate_bend_map(drone, sim_cfg, cache_dir, key, effects=effects)
 
 
 def split_flights(n: int, holdout: float) -> tuple[list[int], list[int]]:
@@ -295,7 +297,7 @@ def _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, cache_dir: str,
     cands = library_candidates(drone, list(dcfg.candidates) or None)
     h, stride, hist = steps_of(dcfg, dt, history_seconds(cands, dcfg.history))
     w_all = _windows(logs, dcfg, h, stride, hist, dt)
-    bend, r_floor, w_floor = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
+    bend, r_floor, w_floor, bend_for = prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)
     laps.lap(f"logs read, bend map and noise floor ({floor_flight_count(drone, dcfg)} nominal flights; cached)")
     sigma = noise_floor(r_floor)
     train_ids, held_ids = split_flights(len(logs.flights), dcfg.holdout)
@@ -306,7 +308,7 @@ def _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, cache_dir: str,
     # the fits estimate a few parameters each: a thinned training set does, and every rollout
     # of a candidate costs in proportion to it
     train = thin(train_all, int(dcfg.fit_windows))
-    pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend)
+    pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend, bend_for)
     ctx = _Naming(drone, sim_cfg, noise_cfg, dcfg, seed, log, laps, pred, cands, train_all, train, held,
                   sigma, r_floor, w_floor, np.random.default_rng(seed))
     return ctx, logs, w_all, (train_ids, held_ids), h, shortfall
