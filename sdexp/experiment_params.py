@@ -271,6 +271,7 @@ class DiscrepancyBenchParams(Params):
     workers: int = param(2, positive())
     rescore: bool = False                  # true: recompute the gap columns of an earlier run in the same folder
     scenario_dir: Optional[str] = None     # where each scenario's logs and reports go; null = <run dir>/scenarios
+    only: Optional[List[str]] = None       # scenario ids to run, e.g. [payload-b0]; the others skipped, every draw unchanged
 
 
 @dataclass

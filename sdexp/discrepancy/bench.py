@@ -20,6 +20,7 @@ import yaml
 
 from sdexp.cache import atomic_write
 from sdexp.discrepancy import bench_effects
+from sdexp.errors import UserError
 from sdexp.sim.physics.effects import LIBRARY
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,18 @@ def scenarios(drone, names, seeds: int, nulls: int, combos: bool, unmodelled: in
                         "seed": seed0 + 1000 + k})
             k += 1
     return out
+
+
+def select(scs: list[dict], only) -> list[dict]:
+    """The scenarios named in ``only`` (experiment.params.only; None: all). Taken from the whole
+    list, so each keeps its draws (they follow its place in the list) and its finished row."""
+    if not only:
+        return scs
+    ids = [sc["id"] for sc in scs]
+    unknown = [i for i in only if i not in ids]
+    if unknown:
+        raise UserError(f"experiment.params.only: unknown scenario(s) {unknown}; this bench's are {ids}")
+    return [sc for sc in scs if sc["id"] in set(only)]
 
 
 def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, cache_dir: str, report=None) -> dict:
@@ -363,6 +376,7 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
         names.remove("rotor_reaction_torque")
     scs = scenarios(drone, names, int(params.seeds), int(params.nulls), bool(params.combos),
                     int(params.unmodelled), seed, tuple(params.levels or (0, 1)), int(params.variants))
+    scs = select(scs, params.only)
     prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)   # cache it once for every worker
     args = [drone_cfg, sim_cfg, noise_cfg, dcfg]   # what the spawned workers need, and nothing of the root config
     # each scenario's logs and workflow outputs (~1.5 MB each): outside a results folder

@@ -18,7 +18,11 @@ L_candidate,w. A candidate passes when mean(d) exceeds z * SE (z from a Bonferro
 one-sided alpha over every candidate tried, windows taken as independent), the relative
 drop exceeds ``min_gain`` and the fit is physical: no parameter on a physical bound and the
 effect's own check met (a fit that needs more than physics allows is reported, with why, and
-not accepted). A second effect passes the same test on the residual the first leaves. No pass: ``none``. The best passing candidate wins; any other
+not accepted). A second effect passes the same test on the residual the first leaves, and
+must also differ from nominal by more than its uncertainty (some parameter's interval excludes
+theta = 0: ``off_nominal``): held-out windows of one flight share its gusts and noise draws, so
+the windows' test alone lets an effect through whose flight bootstrap cannot tell it from
+nothing (a gusty wind's damping_scale 0.41, interval 0-1.31, on the converged flower). No pass: ``none``. The best passing candidate wins; any other
 passing candidate whose held-out loss is not significantly worse than the winner's (paired
 test, same z) is reported as a tie.
 """
@@ -244,8 +248,19 @@ def polish(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effect
     return fit
 
 
-def decide(fits: list[Fit], held_nominal_w: np.ndarray, n_tried: int, alpha: float, min_gain: float):
-    """(verdict, winner, ties, table): verdict 'none' | 'effect' | 'tie'."""
+def off_nominal(fit: Fit, level: float = LEVEL) -> bool:
+    """Whether some fitted parameter's central ``level`` interval (theta + the bootstrap's
+    spread, as params_interval) excludes its nominal 0."""
+    if fit.spread is None or not len(fit.spread):
+        return True   # nothing to judge the uncertainty by: the held-out test decides alone
+    lo, hi = np.percentile(fit.theta + fit.spread, [50.0 * (1 - level), 50.0 * (1 + level)], axis=0)
+    return bool(np.any((lo > 0) | (hi < 0)))
+
+
+def decide(fits: list[Fit], held_nominal_w: np.ndarray, n_tried: int, alpha: float, min_gain: float,
+           need_off_nominal: bool = False):
+    """(verdict, winner, ties, table): verdict 'none' | 'effect' | 'tie'. ``need_off_nominal``
+    (a second effect): a candidate passes only when also ``off_nominal``."""
     z = norm.ppf(1.0 - alpha / max(n_tried, 1))
     L0 = float(np.mean(held_nominal_w))
     rows, passing = [], []
@@ -257,8 +272,9 @@ def decide(fits: list[Fit], held_nominal_w: np.ndarray, n_tried: int, alpha: flo
             d = held_nominal_w - f.held_w
             se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
             gain = float(np.mean(d) / L0) if L0 > 0 else 0.0
-            ok = bool(np.mean(d) > z * se and gain > min_gain and not f.flags)
-            row.update(train_loss=f.train_loss, held_loss=f.held_loss, held_drop=float(np.mean(d)),
+            off = off_nominal(f) if need_off_nominal else True
+            ok = bool(np.mean(d) > z * se and gain > min_gain and not f.flags and off)
+            row.update(off_nominal=off, train_loss=f.train_loss, held_loss=f.held_loss, held_drop=float(np.mean(d)),
                        held_drop_se=se, relative_gain=gain, z_score=float(np.mean(d) / se) if se > 0 else np.inf,
                        not_physical=f.flags, passes=ok)
             if ok:

@@ -464,7 +464,7 @@ def _screen_and_test(ctx: _Naming, fits, remaining, cur_train, cur_held_w, base)
         good += fits[i].train_loss < L_train
     for f in fits:
         _drift(ctx, f, base)
-    v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+    v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain, bool(base))
     cand_of = {c.name: c for c in remaining}
     passed = {r["candidate"] for r in ranking if r.get("passes")}
     passing = [f for f in fits if f.name in passed]
@@ -475,7 +475,7 @@ def _screen_and_test(ctx: _Naming, fits, remaining, cur_train, cur_held_w, base)
             polish(f, cand_of[f.name], pred, train, held, sigma, base, iters=1)
             if "steady_held_w" not in f.evidence:
                 _drift(ctx, f, base)   # polish moved it and scored it steady
-        v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain)
+        v, best, tie, ranking, z = decide(fits, cur_held_w, len(remaining), dcfg.alpha, dcfg.min_gain, bool(base))
     return v, best, tie, ranking, z, passing
 
 

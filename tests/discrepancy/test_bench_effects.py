@@ -44,3 +44,15 @@ def test_the_bench_lists_variants_and_unmodelled_kinds(leaf):
     assert kinds.count("variant") == 6 and kinds.count("unmodelled") == 5
     assert {s["truth"][0] for s in scs if s["kind"] == "variant"} == {"wind", "motor_lag", "payload"}
     assert len({s["seed"] for s in scs}) == len(scs)
+
+
+def test_a_subset_of_the_bench_keeps_its_draws_and_unknown_ids_are_listed(leaf):
+    from sdexp.discrepancy.bench import select
+    from sdexp.errors import UserError
+    scs = scenarios(leaf, ["wind", "payload"], 1, 2, False, 0, levels=(1,), variants=1)
+    sub = select(scs, ["gusty_wind-a-0", "payload-b0"])
+    assert [s["id"] for s in sub] == ["payload-b0", "gusty_wind-a-0"]
+    assert sub == [s for s in scs if s["id"] in ("payload-b0", "gusty_wind-a-0")]   # the same draws and seeds
+    assert select(scs, None) == scs
+    with pytest.raises(UserError, match=r"unknown scenario\(s\) \['payload-a0'\]; this bench's are \['wind-b0'"):
+        select(scs, ["payload-a0"])

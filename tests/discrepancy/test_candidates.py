@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sdexp.discrepancy.candidates import candidate, history_seconds, library_candidates
-from sdexp.discrepancy.fit import Fit, decide
+from sdexp.discrepancy.fit import Fit, decide, off_nominal
 from sdexp.errors import UserError
 from sdexp.sim.physics.effects import LIBRARY, Effect
 from tests.discrepancy.test_workflow import record, workflow
@@ -56,6 +56,29 @@ def test_a_flagged_fit_does_not_pass_however_much_it_helps():
     assert best is good and verdict == "effect"
     row = next(r for r in rows if r["candidate"] == "b")
     assert not row["passes"] and row["not_physical"] == ["k at its upper bound 5"]
+
+
+def test_a_second_effect_must_differ_from_nominal_by_more_than_its_uncertainty():
+    held_nominal = np.full(40, 2.0)
+    rng = np.random.default_rng(0)
+    held = lambda: np.full(40, 1.0) + np.linspace(0, 0.01, 40)  # noqa: E731  (both help the held-out windows alike)
+    # theta -0.59, its flight bootstrap from about -1.4 to +0.3: the interval holds the nominal 0
+    vague = Fit("damping_scale", None, np.array([-0.59]), np.array([0.4]), {}, [], 0.0, refined=True,
+                held_w=held(), held_loss=1.0, spread=rng.normal(0, 0.45, (100, 1)))
+    # theta 0.22, spread 0.07: the interval excludes 0
+    clear = Fit("payload", None, np.array([0.22]), np.array([0.07]), {}, [], 0.0, refined=True,
+                held_w=held() + 0.001, held_loss=1.001, spread=rng.normal(0, 0.07, (100, 1)))
+    assert not off_nominal(vague) and off_nominal(clear)
+    # the first effect: the held-out test alone, and the vague fit wins
+    _, best, _, _, _ = decide([vague, clear], held_nominal, 2, 0.05, 0.02)
+    assert best is vague
+    # a second effect: the vague fit cannot pass however much it helps
+    verdict, best, ties, rows, _ = decide([vague, clear], held_nominal, 2, 0.05, 0.02, need_off_nominal=True)
+    assert best is clear and verdict == "effect" and ties == []
+    row = next(r for r in rows if r["candidate"] == "damping_scale")
+    assert not row["passes"] and row["off_nominal"] is False
+    _, best, _, _, _ = decide([vague], held_nominal, 1, 0.05, 0.02, need_off_nominal=True)
+    assert best is None
 
 
 def test_user_effects_are_candidates_by_target_and_errors_name_the_fix(leaf):

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import itertools
 from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
@@ -560,6 +561,7 @@ class Payload(Effect):
     equation = "m_i += m / n for the n vertices within radius of the rest point (at least the nearest)"
     bench_strengths = ("mass", 0.1, 0.25)   # kg, at a point drawn near the centre of mass
     ranges = {"mass": nonnegative("kg")}
+    SCAN_MASS = 0.2   # kg: the fit's scan (fit_spec), between the bench's moderate and strong weights
 
     @classmethod
     def zero(cls, dim):
@@ -583,10 +585,20 @@ class Payload(Effect):
             q = point(th)
             return None if th[0] <= 0 or over_body(q[horiz]) else f"point {np.round(q, 2).tolist()} is not over the body"
         k = len(horiz)
+        # where a heavy weight sits is far from linear in the moments (lumped on the vertices
+        # near it, it also adds inertia): linearised at the centre alone, a strong payload off to
+        # one side is fitted at a third of its moment and a thrust loss takes the rest (the
+        # converged flower's bench, docs/discrepancy_workflow.md). So a scan first: a mass of
+        # SCAN_MASS at the centre and half the body's horizontal radius of gyration out along each
+        # diagonal (each axis in 2D); the fit linearises about the best of them
+        offsets = rest[:, horiz] - centre[horiz]
+        reach = 0.5 * float(np.sqrt(np.average((offsets ** 2).sum(1), weights=m)))
+        dirs = [np.array(d, dtype=float) / np.sqrt(k) for d in itertools.product((-1.0, 1.0), repeat=k)]
+        scan = [[cls.SCAN_MASS] + [0.0] * k] + [[cls.SCAN_MASS, *(cls.SCAN_MASS * reach * d)] for d in dirs]
         return FitSpec(["mass", *[f"mass_{a}" for a in _axis_names(drone.dim)]], [0.1] + [0.05] * k,
                        [0.0] + [-2.0] * k, [2.0] + [2.0] * k,
                        lambda th, o: {"mass": float(max(th[0], 0.0)), "point": point(th).tolist()},
-                       anchor=[0.1] + [0.0] * k, check=check)
+                       anchor=[0.1] + [0.0] * k, check=check, scan=scan)
 
     def __init__(self, mass: float = 0.1, point: Any = None, radius: float = 0.3):
         self.check_params(mass=mass)
