@@ -262,9 +262,23 @@ def summarize(table: pd.DataFrame) -> dict:
     return out
 
 
+def detectable(table: pd.DataFrame) -> pd.Series:
+    """Whether each scenario's hidden effects show in its held-out flights at all: the true
+    effects cut the nominal simulator's held-out loss by at least 5% (the workflow's min_gain),
+    or, where a replay of the truth cannot reproduce them (random gusts: the replay flies the
+    mean wind), the nominal loss is at least twice the noise floor's (gap_before >= 1). A bench
+    from before the oracle columns: every scenario."""
+    if "oracle_loss_nominal" not in table:
+        return pd.Series(True, index=table.index)
+    nom, true = table.oracle_loss_nominal.astype(float), table.oracle_loss_true.astype(float)
+    return ((nom - true) >= 0.05 * nom) | (table.gap_before.astype(float) >= 1.0)
+
+
 def _answers(table: pd.DataFrame) -> dict:
     """What the workflow answered, per scenario kind: the library effects, the nulls, the
-    combinations, the effects outside the library and their variants."""
+    combinations, the effects outside the library and their variants. The targets count the
+    scenarios whose effect is ``detectable``; the figures over all of them stand beside."""
+    seen = detectable(table)
     single = table[table.kind == "single"]
     null = table[table.kind == "null"]
     combo = table[table.kind == "combo"]
@@ -273,7 +287,7 @@ def _answers(table: pd.DataFrame) -> dict:
     answered = table[table.kind.isin(["single", "variant"])]
     truthful = table[table.kind.isin(["single", "variant", "combo"])]
     return {
-        "top1_accuracy": float(np.mean(single.top1 == single.truth)) if len(single) else None,
+        "top1_accuracy": _top1(single),
         "top1_or_tie_accuracy": float(np.mean([t == s or t in ties.split("+") for t, s, ties in
                                                zip(single.truth, single.top1, single.ties)])) if len(single) else None,
         "null_false_positive_rate": float(np.mean(null.verdict != "none")) if len(null) else None,
@@ -286,13 +300,13 @@ def _answers(table: pd.DataFrame) -> dict:
         "unmodelled_answered_none": float(np.mean(unmod.verdict == "none")) if len(unmod) else None,
         "variant_fair_answer": float(np.mean(variant.top1 == variant.truth)) if len(variant) else None,
         # every effect with a library answer: the library's own and the variants (gusty wind, ...)
-        "top1_with_library_answer": float(np.mean(answered.top1 == answered.truth)) if len(answered) else None,
-        # an outside effect answered honestly: unexplained, partly (named effects and the rest
-        # unexplained), or named effects that close >= 80% of the gap its true effect closes
-        "unmodelled_honest": float(np.mean([v in ("unexplained", "partly") or (g is not None and g == g and g >= 0.8)
-                                            for v, g in zip(unmod.verdict, unmod.get("oracle_gap_reduction",
-                                                                                     [None] * len(unmod)))]))
-        if len(unmod) else None,
+        "top1_with_library_answer": _top1(answered),
+        "top1_accuracy_detectable": _top1(single[seen[single.index]]),
+        "top1_with_library_answer_detectable": _top1(answered[seen[answered.index]]),
+        "undetectable_scenarios": sorted(table.id[~seen & (table.kind != "null")]) if "id" in table else [],
+        # over the outside effects the flights show (detectable), as the issue counts; all beside
+        "unmodelled_honest": _honest(unmod[seen[unmod.index]]),
+        "unmodelled_honest_all": _honest(unmod),
         # a named effect after the first that is not among the truth's, over every scenario with a
         # library truth (a wrong first answer is a top-1 miss, not counted here)
         "spurious_second_effect_rate": float(np.mean([bool(set(n.split("+")[1:]) - set(t.split("+")))
@@ -303,6 +317,20 @@ def _answers(table: pd.DataFrame) -> dict:
         "per_variant_answer": dict(zip(variant.id, variant.named)) if len(variant) else {},
         "per_unmodelled_answer": dict(zip(unmod.id, unmod.verdict + ":" + unmod.named)) if len(unmod) else {},
     }
+
+
+def _top1(rows: pd.DataFrame) -> float | None:
+    return float(np.mean(rows.top1 == rows.truth)) if len(rows) else None
+
+
+def _honest(unmod: pd.DataFrame) -> float | None:
+    """An outside effect answered honestly: unexplained, partly (named effects and the rest
+    unexplained), or named effects that close >= 80% of the gap its true effect closes."""
+    if not len(unmod):
+        return None
+    gaps = unmod.get("oracle_gap_reduction", pd.Series([None] * len(unmod), index=unmod.index))
+    return float(np.mean([v in ("unexplained", "partly") or (g is not None and g == g and g >= 0.8)
+                          for v, g in zip(unmod.verdict, gaps)]))
 
 
 def _gaps(effect: pd.DataFrame) -> dict:
@@ -329,8 +357,8 @@ def _targets(out: dict) -> dict:
     def at_least(key, v):
         return out[key] is not None and out[key] >= v
     return {
-        "top1_accuracy>=0.95": at_least("top1_accuracy", 0.95),
-        "top1_with_library_answer>=0.95": at_least("top1_with_library_answer", 0.95),
+        "top1_accuracy_detectable>=0.95": at_least("top1_accuracy_detectable", 0.95),
+        "top1_with_library_answer_detectable>=0.95": at_least("top1_with_library_answer_detectable", 0.95),
         "spurious_second_effect_rate<=0.05": out["spurious_second_effect_rate"] is not None
         and out["spurious_second_effect_rate"] <= 0.05,
         "unmodelled_honest>=0.8": at_least("unmodelled_honest", 0.8),

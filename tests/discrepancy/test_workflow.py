@@ -136,6 +136,33 @@ def test_summary_counts_ties_nulls_and_gap():
     assert summarize(t.drop(columns="param_covered"))["param_interval_coverage"] is None   # a bench from before
 
 
+def test_targets_count_the_effects_the_flights_show():
+    import pandas as pd
+    from sdexp.discrepancy.bench import detectable
+    row = {"ties": "", "gap_reduction": 0.0, "oracle_gap_reduction": np.nan, "param_error": np.nan, "param_covered": None}
+    t = pd.DataFrame([
+        # the truth cuts the held-out loss 1%: invisible in these flights, and missed
+        {**row, "id": "g-a0", "kind": "single", "truth": "g", "top1": "", "verdict": "none", "named": "",
+         "oracle_loss_nominal": 1.01, "oracle_loss_true": 1.0, "gap_before": 0.01},
+        {**row, "id": "g-b0", "kind": "single", "truth": "g", "top1": "g", "verdict": "effect", "named": "g",
+         "oracle_loss_nominal": 2.0, "oracle_loss_true": 1.0, "gap_before": 1.0},
+        # random gusts: the replay of the mean wind is no better than nominal, but the gap is plain
+        {**row, "id": "gust-0", "kind": "variant", "truth": "wind", "top1": "", "verdict": "unexplained", "named": "",
+         "oracle_loss_nominal": 40.0, "oracle_loss_true": 41.0, "gap_before": 39.0},
+        # an outside effect the truth explains (7% cut), answered none: dishonest; one invisible
+        {**row, "id": "x-0", "kind": "unmodelled", "truth": "x", "top1": "", "verdict": "none", "named": "",
+         "oracle_loss_nominal": 0.95, "oracle_loss_true": 0.88, "gap_before": -0.05},
+        {**row, "id": "y-0", "kind": "unmodelled", "truth": "y", "top1": "", "verdict": "none", "named": "",
+         "oracle_loss_nominal": 1.0, "oracle_loss_true": 0.99, "gap_before": 0.0},
+    ])
+    assert detectable(t).tolist() == [False, True, True, True, False]
+    m = summarize(t)
+    assert m["top1_accuracy"] == 0.5 and m["top1_accuracy_detectable"] == 1.0
+    assert m["top1_with_library_answer_detectable"] == 0.5       # the gusts count, and were missed
+    assert m["undetectable_scenarios"] == ["g-a0", "y-0"]
+    assert m["unmodelled_honest"] == 0.0 and m["unmodelled_honest_all"] == 0.0
+
+
 def test_a_scan_finds_what_the_linearisation_at_zero_misses():
     """A response whose slope at 0 has the wrong sign for the truth (like a strong stiffness
     change): linearised at 0 the fit stays at its bound; linearised about the scan's best point,
