@@ -219,10 +219,10 @@ class BenchSimParams(Params):
                                   # accuracy and substeps (no timing), the evidence behind each default resolution
     bend_load: float = param(2.0, nonnegative())   # N: the outer rotors' push (no net lift or tilting torque) of the accuracy load
     refine: Dict[str, List[float]] = _param(REFINE, lambda v: v > 0, "> 0")   # the converged reference: quadratic meshes at edge_length / these
-    # sim.precision and sim.mass_scaling on one drone's default quadratic mesh (null = none): the force
-    # kernel and the whole step timed with the variants alternated, a noise-free flight and an
-    # undamped free vibration of float32 against float64, the modes that scaling moves
-    variants_drone: Optional[str] = drone_choice("flower")
+    # sim.precision and sim.mass_scaling on these drones' default quadratic meshes (null or [] = none):
+    # the force kernel and the whole step timed with the variants alternated, a noise-free flight and
+    # an undamped free vibration of float32 against float64, the modes that scaling moves
+    variants_drones: Optional[List[str]] = drone_choice(["flower"])
     variants_seconds: float = param(3.0, positive())      # simulated seconds of each variant's step timing
     deviation_seconds: float = param(5.0, positive())     # the noise-free float32 / float64 flight
     mass_scaling: float = _param(0.005, lambda v: 0 < v <= 0.1, "in (0, 0.1]")   # the scaled variants' budget

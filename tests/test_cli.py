@@ -112,7 +112,7 @@ def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
                    "experiment.params.seconds=0.05", "experiment.params.scaling_drone=rod",
                    "experiment.params.scaling_edges={linear: [], quadratic: [0.2]}",
                    "experiment.params.scaling_seconds=0.25", "experiment.params.resolution_factors=[2.0]",
-                   "experiment.params.variants_drone=rod", "experiment.params.variants_seconds=0.25",
+                   "experiment.params.variants_drones=[rod]", "experiment.params.variants_seconds=0.25",
                    "experiment.params.deviation_seconds=0.25", "experiment.params.mass_scaling=0.02",
                    f"cache_dir={cache_dir}")
     metrics = run_experiment(cfg, tmp_path)

@@ -112,9 +112,11 @@ def run(run: Run) -> dict:
                 drone = build_drone(d, cfg.cache_dir, element)
                 rows.append({"series": "scaling", **time_drone(drone, d, cfg, float(p.scaling_seconds), int(cfg.seed)),
                              **response_errors(drone, ref, gravity, load)})
-    if p.variants_drone:
+    variant_drones = list(p.variants_drones or [])
+    for name in Phase("bench_sim variants", len(variant_drones), "drones", enabled=bool(variant_drones)).iterate(
+            variant_drones):
         from sdexp.eval.bench_variants import run_variants
-        d = drone_config(cfg, p.variants_drone)
+        d = drone_config(cfg, name)
         rows += run_variants(build_drone(d, cfg.cache_dir, "quadratic"), d, cfg, p)
     table = pd.DataFrame(rows)
     for c in SPEED:   # a blown-up run's null speeds: NaN in a numeric column, as the plot reads it
@@ -124,7 +126,7 @@ def run(run: Run) -> dict:
     show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
             "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
     log.info(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    if p.variants_drone:
+    if variant_drones:
         show = ["drone", "variant", "kernel_ns_per_element_substep", "kernel_speedup", "kernel_gflops", "peak_share",
                 "substeps_per_step", "realtime_factor", "step_speedup", "added_mass_fraction", "step_gain",
                 "frequency_change_max", "position_deviation_end", "travel", "bend_deviation_deg_max",
