@@ -34,6 +34,8 @@ class Windows:
     start_rows: np.ndarray   # (W, C) the (estimated) measured state each window starts from
     start_u: np.ndarray      # (W, m) the first command of each window
     flight_of: np.ndarray    # (W,) flight index
+    stride: int = 0          # rows between a flight's window starts
+    average: int = 1         # rows each start state is averaged over (start_estimate)
 
     @property
     def count(self) -> int:
@@ -59,20 +61,33 @@ def start_estimate(t: np.ndarray, y: np.ndarray, rows: np.ndarray, average: int,
 
 
 def make_windows(flights, channels, horizon: int, stride: int, history: int, average: int = 1) -> Windows:
-    starts, meas, rows, us, fl = [], [], [], [], []
+    starts = [np.arange(max(history, average - 1), len(f.t) - horizon, stride) for f in flights]
+    return windows_at(flights, starts, channels, horizon, stride, history, average)
+
+
+def preceding(w: Windows) -> Windows:
+    """Each window's predecessor: the window of the same flight that ends where it starts (its
+    start ``horizon`` rows earlier, at the flight's first row at the earliest; its command
+    history then shorter). What a causal estimate of a slowly varying input at a window's start
+    is read from."""
+    return windows_at(w.flights, [np.maximum(s - w.horizon, 0) for s in w.starts], w.channels, w.horizon,
+                      w.stride, w.history, w.average)
+
+
+def windows_at(flights, starts, channels, horizon: int, stride: int, history: int, average: int) -> Windows:
+    """The windows of ``flights`` that start at rows ``starts`` (an array per flight)."""
+    meas, rows, us, fl = [], [], [], []
     ang = angle_columns(channels)
-    for i, f in enumerate(flights):
-        s = np.arange(max(history, average - 1), len(f.t) - horizon, stride)
-        starts.append(s)
+    for i, (f, s) in enumerate(zip(flights, starts)):
         if len(s):
             idx = s[:, None] + 1 + np.arange(horizon)[None]
             meas.append(f.y[idx]); rows.append(start_estimate(f.t, f.y, s, average, ang))
             us.append(f.u[s]); fl.append(np.full(len(s), i))
     C = len(channels)
     cat = lambda a, shape: np.concatenate(a) if a else np.zeros(shape)
-    return Windows(flights, starts, horizon, history, channels, cat(meas, (0, horizon, C)),
+    return Windows(flights, list(starts), horizon, history, channels, cat(meas, (0, horizon, C)),
                    cat(rows, (0, C)), cat(us, (0, flights[0].u.shape[1] if flights else 0)),
-                   cat(fl, (0,)).astype(int))
+                   cat(fl, (0,)).astype(int), stride, average)
 
 
 def subset(w: Windows, flight_ids) -> Windows:
@@ -80,9 +95,9 @@ def subset(w: Windows, flight_ids) -> Windows:
     ids = list(flight_ids)
     keep = np.isin(w.flight_of, ids)
     remap = {f: k for k, f in enumerate(ids)}
-    return Windows([w.flights[f] for f in ids], [w.starts[f] for f in ids], w.horizon, w.history,
-                   w.channels, w.measured[keep], w.start_rows[keep], w.start_u[keep],
-                   np.array([remap[f] for f in w.flight_of[keep]], dtype=int))
+    return replace(w, flights=[w.flights[f] for f in ids], starts=[w.starts[f] for f in ids],
+                   measured=w.measured[keep], start_rows=w.start_rows[keep], start_u=w.start_u[keep],
+                   flight_of=np.array([remap[f] for f in w.flight_of[keep]], dtype=int))
 
 
 def thin(w: Windows, at_most: int) -> Windows:
@@ -95,8 +110,8 @@ def thin(w: Windows, at_most: int) -> Windows:
     for s in w.starts:
         starts.append(s[keep[k:k + len(s)]])
         k += len(s)
-    return Windows(w.flights, starts, w.horizon, w.history, w.channels, w.measured[keep],
-                   w.start_rows[keep], w.start_u[keep], w.flight_of[keep])
+    return replace(w, starts=starts, measured=w.measured[keep], start_rows=w.start_rows[keep],
+                   start_u=w.start_u[keep], flight_of=w.flight_of[keep])
 
 
 def prediction_model(noise_cfg) -> tuple:

@@ -480,15 +480,14 @@ def _screen_and_test(ctx: _Naming, fits, remaining, cur_train, cur_held_w, base)
 
 
 def _drift(ctx: _Naming, f, base: list) -> None:
-    """A wind may drift: scored on held-out windows also with the deviation the window before
-    asked for (gusts.causal_residual), the better of the two kept as evidence."""
+    """A wind may drift: scored on held-out windows also with the deviation the horizon before
+    each asked for (gusts.causal_residual), the better of the two kept as evidence."""
     if f.name != "wind" or not f.refined:
         return
     pred, sigma = ctx.pred, ctx.sigma
     eff = base + f.effects
     r_c, rho = gusts.causal_residual(pred, ctx.train_all, ctx.held, sigma, eff, f.effects[0],
-                                     pred.residual(ctx.train_all, eff), f.evidence["held_residual"],
-                                     WIND_PLANES[ctx.drone.dim][f.option])
+                                     pred.residual(ctx.train_all, eff), WIND_PLANES[ctx.drone.dim][f.option])
     f.evidence["drift_rho"] = rho
     if r_c is not None and np.mean(window_loss(r_c, sigma)) < f.held_loss:
         f.evidence["steady_held_w"] = f.held_w

@@ -3,7 +3,7 @@ and angles, each carried to the start by the integral of its measured rate."""
 import numpy as np
 
 from sdexp.discrepancy.logs import angle_columns, channel_names
-from sdexp.discrepancy.windows import start_estimate
+from sdexp.discrepancy.windows import make_windows, preceding, start_estimate, subset, thin
 
 
 def motion(t):
@@ -40,6 +40,24 @@ def test_the_start_estimate_shrinks_the_noise_without_lag():
     exact[:, 2] = (exact[:, 2] + np.pi) % (2 * np.pi) - np.pi
     bound = np.array([27, 0, 0, 0.2 * (2 * np.pi * 4) ** 3]) * 1e-6 / 12 * 3.5
     assert np.all(np.abs(exact).max(axis=0) <= 1.05 * bound + 1e-12)
+
+
+def test_each_window_has_a_predecessor_that_ends_where_it_starts():
+    from types import SimpleNamespace
+    t = np.arange(300) * 0.01
+    q, dq = motion(t)
+    flights = [SimpleNamespace(t=t, y=np.c_[q, dq] + k, u=np.c_[t, -t] + k) for k in range(2)]
+    w = make_windows(flights, channel_names(2, 1), horizon=20, stride=50, history=30, average=8)
+    assert (w.stride, w.average) == (50, 8)
+    before = preceding(w)
+    assert before.count == w.count and (before.flight_of == w.flight_of).all()
+    for s, b in zip(w.starts, before.starts):
+        np.testing.assert_array_equal(b, s - 20)
+    # the predecessor's last measured row is the window's start row: it never reads the window's data
+    np.testing.assert_array_equal(before.measured[:, -1], np.concatenate([f.y[s] for f, s in zip(flights, w.starts)]))
+    # subsets keep what the predecessors need
+    one = thin(subset(w, [1]), 3)
+    assert (one.stride, one.average, one.count) == (50, 8, 3) and (preceding(one).flight_of == 0).all()
 
 
 def test_a_body_changed_by_its_effect_is_posed_with_its_own_bend_map(small_cfg, leaf, tmp_path):

@@ -93,7 +93,8 @@ def test_reduced_bench_meets_loose_bounds(tmp_path, small_cfg, monkeypatch):
     assert m["null_false_positive_rate"] == 0.0
     assert m["per_effect_top1"]["thrust_loss"] == 1.0 and m["median_gap_reduction"] > 0.5
     assert (tmp_path / "confusion.png").exists() and (tmp_path / "scenarios.csv").exists()
-    assert set(m["targets_met"]) == {"top1_accuracy>=0.95", "top1_with_library_answer>=0.95", "unmodelled_honest>=0.8",
+    assert set(m["targets_met"]) == {"top1_accuracy_detectable>=0.95", "top1_with_library_answer_detectable>=0.95",
+                                     "unmodelled_honest>=0.8",
                                      "spurious_second_effect_rate<=0.05",
                                      "null_false_positive_rate<=0.05", "median_gap_reduction>=0.8", "wall_minutes<=30",
                                      "param_interval_coverage>=0.8"}
