@@ -207,7 +207,7 @@ class ValidateFemParams(Params):
 
 @dataclass
 class BenchSimParams(Params):
-    drones: Optional[List[str]] = drone_choice(None)   # null = all twelve
+    drones: Optional[List[str]] = drone_choice(None)   # null = all twelve, [] = none
     elements: List[str] = _param(list(ELEMENTS))
     seconds: float = param(3.0, positive())               # simulated seconds per drone
     scaling_drone: Optional[str] = drone_choice("flower")   # null = no refinement series

@@ -123,6 +123,7 @@ def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
     assert metrics["rod_float32_position_deviation_end"] < 1e-5 and metrics["rod_float64_scaled_step_gain"] > 1
     assert 0 < metrics["rod_float64_scaled_added_mass_fraction"] <= 0.02 and metrics["rod_float32_kernel_speedup"] > 0
     assert table["edge_length"].iloc[3] == 0.2 and (tmp_path / "bench_sim.png").exists()
+    assert (tmp_path / "variants.png").exists()
     # the rod's default mesh: quadratic elements bend like the converged body, linear ones lock
     assert abs(metrics["rod_quadratic_bend_error"]) < 0.05 and metrics["rod_linear_bend_error"] < -0.2
     assert np.isfinite(table["bend_error"][:4]).all() and (table["blowups"].dropna() == 0).all()
@@ -132,6 +133,16 @@ def test_bench_sim_runs_shrunk_and_resumes(tmp_path, cache_dir):
     (tmp_path / "bench_sim.csv").unlink()
     assert run_experiment(cfg, tmp_path) == json.loads((tmp_path / "metrics.json").read_text())
     assert not (tmp_path / "bench_sim.csv").exists()  # skipped: metrics.json was there
+
+    # the variant rows alone (drones [] = none): no converged references, no accuracy figure
+    only = make_cfg("experiment=bench_sim", "drone=rod", "experiment.params.drones=[]",
+                    "experiment.params.scaling_drone=null", "experiment.params.resolution_factors=[]",
+                    "experiment.params.variants_drones=[rod]", "experiment.params.variants_seconds=0.25",
+                    "experiment.params.deviation_seconds=0.25", "experiment.params.mass_scaling=0.02",
+                    f"cache_dir={cache_dir}")
+    run_experiment(only, tmp_path / "variants")
+    assert set(pd.read_csv(tmp_path / "variants" / "bench_sim.csv")["series"]) == {"variant"}
+    assert (tmp_path / "variants" / "variants.png").exists() and not (tmp_path / "variants" / "bench_sim.png").exists()
 
 
 def test_validate_fem_runs_shrunk_and_matches_the_stored_reference(tmp_path, cache_dir):

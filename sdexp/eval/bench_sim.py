@@ -76,11 +76,11 @@ def drone_config(cfg, name: str):
 
 
 def run(run: Run) -> dict:
-    from sdexp.eval.plots import bench_plot
+    from sdexp.eval.plots import bench_plot, variants_plot
     from sdexp.log import Phase
 
     cfg, p, out_dir = run.cfg, run.params, run.out_dir
-    names = list(p.drones or drone_names())
+    names = drone_names() if p.drones is None else list(p.drones)   # [] = none (e.g. the variants alone)
     elements = list(p.elements)
     gravity, load = float(cfg.sim.gravity), float(p.bend_load)
     rows = []
@@ -120,12 +120,16 @@ def run(run: Run) -> dict:
         rows += run_variants(build_drone(d, cfg.cache_dir, "quadratic"), d, cfg, p)
     table = pd.DataFrame(rows)
     for c in SPEED:   # a blown-up run's null speeds: NaN in a numeric column, as the plot reads it
-        table[c] = pd.to_numeric(table[c])
+        if c in table:
+            table[c] = pd.to_numeric(table[c])
     run.table(table, "bench_sim")
-    bench_plot(table, out_dir / "bench_sim.png")
-    show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
-            "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
-    log.info(table[show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if (table["series"] != "variant").any():
+        bench_plot(table, out_dir / "bench_sim.png")
+        show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
+                "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
+        log.info(table[table["series"] != "variant"][show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if variant_drones:
+        variants_plot(table, out_dir / "variants.png")
     if variant_drones:
         show = ["drone", "variant", "kernel_ns_per_element_substep", "kernel_speedup", "kernel_gflops", "peak_share",
                 "substeps_per_step", "realtime_factor", "step_speedup", "added_mass_fraction", "step_gain",

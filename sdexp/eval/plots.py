@@ -90,6 +90,42 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
     save_figure(fig, path, dpi=100)
 
 
+def variants_plot(table: pd.DataFrame, path: Path) -> None:
+    """bench_sim's variant rows, per drone: the real-time factor of each variant (sim.precision x
+    sim.mass_scaling), the force kernel's share of the core's peak, and what each costs in
+    accuracy (the largest change of the first eight free-free frequencies; the float32 flight's
+    RMS bend deviation from float64)."""
+    rows = table[table["series"] == "variant"]
+    names = list(dict.fromkeys(rows["drone"]))
+    kinds = list(dict.fromkeys(rows["variant"]))
+    y = np.arange(len(names))
+    width = 0.8 / max(len(kinds), 1)
+    fig, axes = plt.subplots(1, 3, figsize=(18, 0.45 * len(names) + 2.5), sharey=True)
+    for k, kind in enumerate(kinds):
+        r = rows[rows["variant"] == kind].set_index("drone").reindex(names)
+        off = (k - (len(kinds) - 1) / 2) * width
+        axes[0].barh(y + off, r["realtime_factor"], height=width, label=kind)
+        axes[1].barh(y + off, 100 * r["peak_share"], height=width, label=kind)
+        cost = 100 * np.maximum(r["frequency_change_max"], r["bend_rms_deviation"].fillna(0))
+        axes[2].barh(y + off, cost.clip(lower=1e-5), height=width, label=kind)   # the reference: at the floor
+    axes[0].set_yticks(y, names)
+    axes[0].invert_yaxis()
+    axes[0].axvline(1, color="k", lw=0.8)
+    axes[0].set_xlabel("real-time factor (simulated s / wall s)")
+    axes[0].set_title("speed of each variant")
+    axes[1].set_xlabel("force kernel, % of one core's FMA peak (own precision)")
+    axes[1].set_title("the kernel against the hardware")
+    axes[2].axvline(1, color="r", ls="--", label="1%")
+    axes[2].set_xscale("log")
+    axes[2].set_xlabel("% off float64 unscaled, the larger of: first 8 frequencies, RMS bend of a flight")
+    axes[2].set_title("what it costs in accuracy")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=100)
+
+
 def drone_accuracy_plot(table: pd.DataFrame, path: Path) -> None:
     """Bend, compliance and first free-free frequency errors of every drone's default mesh,
     linear beside quadratic (the frequency panel: the first mode's error as a bar, the largest
