@@ -197,6 +197,37 @@ def test_a_scan_finds_what_the_linearisation_at_zero_misses():
     assert scanned.theta[0] == pytest.approx(truth, abs=0.1)
 
 
+def test_polish_finds_a_minimum_on_a_bend_of_the_response():
+    """A delay's response is linear between multiples of the control step and bends at each:
+    with the truth on a bend, a fit linearised from the scan's 0.06 along the next segment stops
+    at 0.055; polish's pattern search lands on the truth."""
+    from types import SimpleNamespace
+
+    from sdexp.discrepancy.candidates import Candidate
+    from sdexp.discrepancy.fit import Fit, polish
+
+    grid = np.arange(0.0, 0.31, 0.01)
+    rng = np.random.default_rng(1)
+    shapes = rng.normal(size=(len(grid), 6, 3, 2)).cumsum(axis=0)   # a response per grid point
+
+    def response(d):   # linear interpolation between grid points, as the delay's
+        k = min(int(d / 0.01), len(grid) - 2)
+        a = (d - grid[k]) / 0.01
+        return (1 - a) * shapes[k] + a * shapes[k + 1]
+
+    class Predictor:
+        def residual(self, windows, effects):
+            return response(0.05) - response(effects[0]["d"] if effects else 0.0)
+
+    cand = Candidate("delay", ["d"], np.array([0.02]), np.array([0.0]), np.array([0.3]),
+                     lambda th, o: [{"d": float(th[0])}], lambda th, o: {"d": float(th[0])},
+                     scan=[np.array([v]) for v in (0.03, 0.06, 0.12)])
+    fit = Fit("delay", None, np.array([0.055]), np.zeros(1), {}, [], 0.0, refined=True)
+    windows = SimpleNamespace(count=6)
+    polish(fit, cand, Predictor(), windows, windows, np.ones((3, 2)), [], iters=1)
+    assert fit.theta[0] == pytest.approx(0.05, abs=1e-9) and fit.train_loss == pytest.approx(0.0, abs=1e-20)
+
+
 def test_the_push_diagnostic_shows_a_wind_push_along_the_wind(tmp_path, small_cfg, leaf):
     """With no candidate for it, a steady wind along +x shows as a push along +x in most windows
     of the per-window diagnostic, and the per-window push removes much of the excess."""
