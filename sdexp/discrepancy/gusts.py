@@ -91,7 +91,8 @@ def causal_residual(pred, train_all, held, sigma, effects, wind: dict, r_train_a
     rho_h = float(min(rho, 1.0) ** (held.horizon / max(held.stride, held.horizon)))
     before = preceding(held)
     dev, _ = deviations(pred, before, sigma, effects, wind, pred.residual(before, effects), axes)
-    offset = rho_h * dev
+    # a window too close to its flight's start for a whole predecessor keeps the mean (causal)
+    offset = rho_h * dev * np.concatenate([s >= held.horizon for s in held.starts])[:, None]
     live = build_effects([wind])[0]
     mean = np.array(wind["velocity"], dtype=float)
     axes = list(axes)

@@ -67,9 +67,9 @@ def make_windows(flights, channels, horizon: int, stride: int, history: int, ave
 
 def preceding(w: Windows) -> Windows:
     """Each window's predecessor: the window of the same flight that ends where it starts (its
-    start ``horizon`` rows earlier, at the flight's first row at the earliest; its command
-    history then shorter). What a causal estimate of a slowly varying input at a window's start
-    is read from."""
+    start ``horizon`` rows earlier, at the flight's first row at the earliest: then it overlaps
+    the window, which a causal user must skip; its command history may be shorter). What a
+    causal estimate of a slowly varying input at a window's start is read from."""
     return windows_at(w.flights, [np.maximum(s - w.horizon, 0) for s in w.starts], w.channels, w.horizon,
                       w.stride, w.history, w.average)
 
