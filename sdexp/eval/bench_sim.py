@@ -76,6 +76,7 @@ def drone_config(cfg, name: str):
 
 
 def run(run: Run) -> dict:
+    from sdexp.eval.bench_variants import run_variants
     from sdexp.eval.plots import bench_plot, variants_plot
     from sdexp.log import Phase
 
@@ -115,7 +116,6 @@ def run(run: Run) -> dict:
     variant_drones = list(p.variants_drones or [])
     for name in Phase("bench_sim variants", len(variant_drones), "drones", enabled=bool(variant_drones)).iterate(
             variant_drones):
-        from sdexp.eval.bench_variants import run_variants
         d = drone_config(cfg, name)
         rows += run_variants(build_drone(d, cfg.cache_dir, "quadratic"), d, cfg, p)
     table = pd.DataFrame(rows)
@@ -130,7 +130,6 @@ def run(run: Run) -> dict:
         log.info(table[table["series"] != "variant"][show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     if variant_drones:
         variants_plot(table, out_dir / "variants.png")
-    if variant_drones:
         show = ["drone", "variant", "kernel_ns_per_element_substep", "kernel_speedup", "kernel_gflops", "peak_share",
                 "substeps_per_step", "realtime_factor", "step_speedup", "added_mass_fraction", "step_gain",
                 "frequency_change_max", "position_deviation_end", "travel", "bend_deviation_deg_max",

@@ -34,6 +34,15 @@ def refinement_plot(table: pd.DataFrame, path: Path) -> None:
     save_figure(fig, path, dpi=120)
 
 
+def _finish(fig, axes, path: Path) -> None:
+    """Grid and legend on every panel, then the figure saved (bench_sim's figures)."""
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=100)
+
+
 def bench_plot(table: pd.DataFrame, path: Path) -> None:
     """Per drone: real-time factor and bend error of both element types; and the flower's
     speed/accuracy frontier (bend error against real-time factor over its refinements)."""
@@ -83,11 +92,7 @@ def bench_plot(table: pd.DataFrame, path: Path) -> None:
     axes[3].set_xlabel("elements x substeps per control step (cost)")
     axes[3].set_ylabel("larger of |bend|, |compliance| error (%)")
     axes[3].set_title("quadratic meshes coarsened x1, x1.4, x2")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=100)
+    _finish(fig, axes, path)
 
 
 def variants_plot(table: pd.DataFrame, path: Path) -> None:
@@ -119,11 +124,7 @@ def variants_plot(table: pd.DataFrame, path: Path) -> None:
     axes[2].set_xscale("log")
     axes[2].set_xlabel("% off float64 unscaled, the larger of: first 8 frequencies, RMS bend of a flight")
     axes[2].set_title("what it costs in accuracy")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=100)
+    _finish(fig, axes, path)
 
 
 def drone_accuracy_plot(table: pd.DataFrame, path: Path) -> None:
