@@ -31,7 +31,7 @@ import yaml
 from sdexp.cache import atomic_write, cached_arrays, config_key, key_of
 from sdexp.discrepancy import gusts, push, separate
 from sdexp.discrepancy.candidates import history_seconds, library_candidates
-from sdexp.discrepancy.fit import LEVEL, decide, linear_fit, params_interval, polish, refine, window_loss
+from sdexp.discrepancy.fit import LEVEL, decide, linear_fit, params_interval, polish, profile, refine, window_loss
 from sdexp.discrepancy.localize import (channel_excess, heatmap, localize, noise_floor, unexplained_cell,
                                         unexplained_channels)
 from sdexp.discrepancy.logs import read_logs
@@ -421,6 +421,9 @@ def _name(ctx: _Naming, r_train, r_held, held_nom_w, floor_w) -> _Named:
             break
         if len(passing) <= 1:
             polish(best, cand_of[best.name], pred, train, held, sigma, base, iters=1)
+        laps.lap(f"round {rnd + 1}: {best.name} polished")
+        profile(best, cand_of[best.name], pred, train, held, sigma, base)
+        laps.lap(f"round {rnd + 1}: {best.name}'s intervals profiled")
         accepted.append(best)
         if rnd == 0:
             verdict, ties = v, [t.name for t in tie]
@@ -432,8 +435,8 @@ def _name(ctx: _Naming, r_train, r_held, held_nom_w, floor_w) -> _Named:
         cur_held = best.evidence["held_residual"]
         # what the fitted simulator predicts: a drifting wind at its mean (its gusts are random)
         cur_held_w = best.evidence.get("steady_held_w", best.held_w)
-        cur_train = pred.residual(train, base)
-        laps.lap(f"round {rnd + 1}: {best.name} polished and added")
+        cur_train = best.evidence["train_residual"] if "train_residual" in best.evidence else pred.residual(train, base)
+        laps.lap(f"round {rnd + 1}: {best.name} added")
         # seek another effect only while the held-out loss is well above the floor's and a
         # channel is left above it (held out, replicated on training flights): close to the
         # floor, what is left is the named effect's imperfect fit (a payload lumped on other
@@ -559,7 +562,8 @@ def _confusable(best, tie, cur_held, sigma, base, drone, sim_cfg, noise_cfg, dcf
 
 def describe(effect: dict) -> str:
     """'payload: mass 0.29 (0.26 to 0.32), point [...]': each fitted number with its interval
-    (report.json's params_interval, the central interval_level of the bootstrap)."""
+    (report.json's params_interval: the bootstrap's central interval_level, widened by the
+    profile where the loss is flat)."""
     ival = effect.get("params_interval") or {}
     num = lambda v: f"{v:.3g}"  # noqa: E731
     parts = []

@@ -112,3 +112,59 @@ def test_a_users_own_hypothesis_is_named_from_the_logs(tmp_path, small_cfg, leaf
     rep = workflow(cfg, leaf, tmp_path / "logs", tmp_path / "out")
     assert rep["verdict"] in ("effect", "tie", "partly") and rep["effects"][0]["name"] == "rotor_tilt"
     assert rep["effects"][0]["params"]["angle"] == pytest.approx(0.2, rel=0.5)
+
+
+class _Windows:
+    """Training windows of a synthetic one-channel predictor: 6 flights of 4 windows."""
+    count = 24
+    flight_of = np.repeat(np.arange(6), 4)
+
+
+def _profiled(response, truth: float, seed: int = 0):
+    """Fit theta of ``response`` (theta -> (24, 50, 1) prediction) to data made at ``truth``
+    (flight-level offsets + white noise), profile it, and return (fit, bootstrap-only interval,
+    profiled interval) of the reported value."""
+    from sdexp.discrepancy.candidates import Candidate
+    from sdexp.discrepancy.fit import linear_fit, params_interval, profile
+    rng = np.random.default_rng(seed)
+    y = response(truth) + 0.3 * rng.normal(size=(6, 1, 1, 1)).repeat(4, 0).reshape(24, 1, 1) \
+        + rng.normal(size=(24, 50, 1))
+
+    class Pred:
+        def residual(self, windows, effects):
+            th = effects[0]["v"] if effects else 0.0
+            return y - response(th)
+
+    cand = Candidate("x", ["v"], np.array([0.2]), np.array([0.0]), np.array([2.0]),
+                     lambda th, o: [{"v": float(th[0])}], lambda th, o: {"v": float(th[0])})
+    sigma = np.ones((50, 1))   # the noise floor per step and channel
+    fit = linear_fit(cand, Pred(), _Windows(), sigma, Pred().residual(None, []), [], rng)
+    fit.train_loss = float(np.mean(Pred().residual(None, cand.build(fit.theta, None)) ** 2))
+    before = params_interval(fit, cand)["v"], fit.theta[0], fit.train_loss
+    profile(fit, cand, Pred(), _Windows(), _Windows(), sigma, [])
+    return fit, before, params_interval(fit, cand)["v"]
+
+
+def test_a_profile_widens_an_interval_only_where_the_loss_is_flat():
+    a = np.linspace(-1, 1, 50)[None, :, None] * np.ones((24, 1, 1)) * 3.0
+    # a response that stops growing past 0.5: data made at 0.8 say "at least about 0.5"; the
+    # linear bootstrap, blind to the flat side, gives a narrow interval below the truth
+    flat = lambda th: a * (min(th, 0.5) + 0.02 * max(th - 0.5, 0.0))  # noqa: E731
+    fit, (before, _, _), after = _profiled(flat, 0.8)
+    assert before[1] < 0.8 <= after[1]
+    assert after[0] == pytest.approx(before[0])      # the steep side keeps the bootstrap's end
+    # a response linear in theta: the profile's edges are the bootstrap's (t/2 on the paired
+    # test is the Wald interval there), so the interval and the fit stay
+    line = lambda th: a * th  # noqa: E731
+    fit, (before, theta, _), after = _profiled(line, 0.4)
+    assert before[0] <= 0.4 <= before[1] and after == pytest.approx(before) and fit.theta[0] == theta
+
+
+def test_a_profile_moves_a_fit_that_stopped_short_to_its_lower_loss():
+    # a response that flattens (a square root): the Jacobian from theta = 0 overshoots the
+    # slope, and the linear fit stops at about half the truth
+    a = np.linspace(-1, 1, 50)[None, :, None] * np.ones((24, 1, 1)) * 3.0
+    fit, (before, theta, loss), after = _profiled(lambda th: a * np.sqrt(th), 0.8)
+    assert theta < 0.6 and before[1] < 0.8
+    assert theta < fit.theta[0] <= 0.8 and fit.train_loss < loss and after[1] > before[1]
+    assert fit.held_loss == pytest.approx(fit.train_loss)   # scored again (the same windows here)

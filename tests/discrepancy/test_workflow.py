@@ -52,7 +52,7 @@ def test_hidden_payload_is_named_added_and_the_gap_shrinks(tmp_path, small_cfg, 
                                 "round 1: linear fits of 4 candidates"]
     assert sum(p["seconds"] for p in phases.values()) == pytest.approx(saved["seconds"], rel=0.05, abs=0.5)
     assert sum(p["rollouts"] for p in phases.values()) == saved["rollouts"]
-    assert "round 1: payload polished and added" in phases
+    assert "round 1: payload polished" in phases and "round 1: payload's intervals profiled" in phases
     # the override is a simulator config the simulator loads, with the fitted effect in it
     sim_cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), OmegaConf.load(rep["sim_fitted"])))
     sim = Simulator(leaf, sim_cfg, small_cfg.noise)
