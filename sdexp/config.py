@@ -312,8 +312,9 @@ class DiscrepancyConfig:
     unexplained_ratio: float = param(1.2, at_least(1, "(a multiple of the noise floor)"))   # a channel's residual / noise floor above which, if significant over
                                        # held-out flights and replicated on training flights, it is unexplained
     second_effect_ratio: float = param(1.5, at_least(1, "(a multiple of the noise floor)"))   # held-out loss / the floor's above which another effect is sought
-    explained_enough: float = param(0.8, between(0, 1, "(]"))   # share of the gap below which named effects with channels left
-                                       # above the floor are answered "partly" (the rest unexplained)
+    explained_enough: float = param(0.9, between(0, 1, "(]"))   # share of the gap below which named effects with channels left
+                                       # above the floor are answered "partly" (the rest unexplained); correctly named
+                                       # library effects that leave such channels close 0.96-1.0 (both benches)
     push: bool = True                  # the per-window push diagnostic (push.csv/png): 8 rollouts more
     record: RecordConfig = field(default_factory=RecordConfig)
 

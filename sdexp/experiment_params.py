@@ -266,8 +266,9 @@ class DiscrepancyBenchParams(Params):
     combos: bool = True
     variants: int = param(1, nonnegative())         # per seed: every outside-the-library effect with a fair library
                                            # answer (gusty wind at two strengths, per-rotor lags, a hanging weight)
-    unmodelled: int = param(1, nonnegative())       # per seed: every outside-the-library effect without one (six kinds,
-                                           # sdexp.discrepancy.bench_effects): the honest answer is unexplained
+    unmodelled: int = param(3, nonnegative())       # draws of every outside-the-library effect without one (five kinds,
+                                           # sdexp.discrepancy.bench_effects): the honest answer is unexplained or
+                                           # partly; one draw each resolves the honest share to 0.2 only
     workers: int = param(2, positive())
     rescore: bool = False                  # true: recompute the gap columns of an earlier run in the same folder
     scenario_dir: Optional[str] = None     # where each scenario's logs and reports go; null = <run dir>/scenarios
