@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import queue
+import time
 from typing import Callable, Sequence
 
 ONE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -34,7 +34,6 @@ def exit_with_parent(parent: int, every: float = 1.0) -> None:
     """End this worker when the process that started it is gone (killed runs otherwise leave
     their workers simulating to the end of their task); its outputs are written atomically, so
     nothing half-written stays behind."""
-    import time
     while os.getppid() == parent:
         time.sleep(every)
     os._exit(1)
@@ -81,7 +80,10 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
     from concurrent.futures.process import BrokenProcessPool
 
     ctx = mp.get_context("spawn")
-    q = ctx.Queue()
+    # a SimpleQueue writes each report in the worker's own call, not from a feeder thread: a
+    # worker the pool ends with SIGTERM once another died (its finished tasks kept) could take
+    # its last reports down with it (CI counted 3 of 4 tasks, twice, on a loaded machine)
+    q = ctx.SimpleQueue()
     drain = progress or (lambda n: None)
     saved = {k: os.environ.get(k) for k in ONE_THREAD_ENV}
     os.environ.update(ONE_THREAD_ENV)
@@ -93,10 +95,7 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
             _restore(saved)
             try:
                 while not all(f.done() for f in futures.values()):
-                    try:
-                        drain(q.get(timeout=0.2))
-                    except queue.Empty:
-                        pass
+                    _drain(q, drain, wait=0.2)
                 for i, f in futures.items():
                     if not f.cancelled() and f.exception() is None:
                         results[i] = f.result()
@@ -116,13 +115,18 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
                 raise
     finally:
         _restore(saved)
-        # what the workers reported before the pool ended, broken or not (a report left in the
-        # queue when a killed worker broke the pool was lost: CI saw 3 of 4 tasks counted)
-        while True:
-            try:
-                drain(q.get(timeout=0.05))
-            except queue.Empty:
-                break
+        # what the workers reported before the pool ended, broken or not
+        _drain(q, drain)
+
+
+def _drain(q, drain: Callable, wait: float = 0.0) -> None:
+    """Pass every report waiting in q on; with ``wait``, sleep that long when there is none."""
+    if q.empty():
+        if wait:
+            time.sleep(wait)
+        return
+    while not q.empty():
+        drain(q.get())
 
 
 def _restore(saved: dict) -> None:
