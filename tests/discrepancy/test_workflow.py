@@ -293,6 +293,22 @@ def test_intervals_are_the_bootstrap_central_share_of_each_measured_parameter():
     assert params_interval(Fit("x", None, np.zeros(1), np.zeros(1), {}, [], 0.0), cand) == {}
 
 
+def test_partly_where_the_rest_stays_above_the_floor_or_two_unlike_effects_tie():
+    """Named effects closing less than explained_enough are only part of the answer when a channel
+    is left above the floor, or when the winner ties with a candidate of another signature; a tie
+    of alike signatures, or a fit that closes enough, is not."""
+    from sdexp.discrepancy.workflow import partly_because
+    unlike = [{"candidates": ["thrust_loss", "payload"], "cosine": 0.87, "alike": False}]
+    alike = [{"candidates": ["thrust_loss", "payload"], "cosine": 0.95, "alike": True}]
+    cell = {"channel": "pos_z", "regime": "hover"}
+    assert "payload" in partly_because(0.73, 0.9, None, unlike)
+    assert "above the floor" in partly_because(0.73, 0.9, cell, [])
+    assert partly_because(0.73, 0.9, None, alike) is None
+    assert partly_because(0.73, 0.9, None, []) is None
+    assert partly_because(0.95, 0.9, cell, unlike) is None
+    assert partly_because(None, 0.9, cell, unlike) is None
+
+
 def test_few_resampled_flights_widen_the_interval_by_students_t():
     """4 training flights: t(3) over the normal quantile times sqrt(4/3); many windows: nearly 1."""
     from scipy.stats import norm, t
