@@ -7,7 +7,8 @@ between the simulator and measured logs, name the missing effect, add it, show t
 2. Name: fit every candidate effect on training flights, test on held-out flights (fit.py);
    ``none``, an effect, a tie, ``unexplained`` with the channel and regime that stay above
    the floor, or ``partly``: named effects that close less than ``explained_enough`` of the gap
-   with channels left above the floor or in a tie with an unlike candidate. Up to ``max_effects`` effects are added one after another.
+   with channels left above the floor or in a tie with an unlike candidate. Up to
+   ``max_effects`` effects are added one after another.
 3. Add: sim_fitted.yaml, the simulator config with the fitted effects (a drop-in for
    conf/sim/<name>.yaml).
 4. Show: held-out per-channel error before and after (gap.csv) and overlays (overlay.png); where

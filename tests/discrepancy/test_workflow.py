@@ -309,6 +309,26 @@ def test_partly_where_the_rest_stays_above_the_floor_or_two_unlike_effects_tie()
     assert partly_because(None, 0.9, cell, unlike) is None
 
 
+def test_a_candidate_that_fell_short_of_its_linear_promise_is_polished(monkeypatch):
+    """The wind's linear model promised 57.8, its rollout gave 64.7, the damping reached 59.6: the
+    wind is polished before the test; the damping (the best rollout) and a candidate that promised
+    less than the best reached are not."""
+    from types import SimpleNamespace
+
+    from sdexp.discrepancy import workflow as W
+    from sdexp.discrepancy.fit import Fit
+    polished = []
+    monkeypatch.setattr(W, "polish", lambda f, *a, **k: polished.append(f.name))
+
+    def fit(name, promised, reached, refined=True):
+        return Fit(name, None, np.zeros(1), np.zeros(1), {}, [], promised, train_loss=reached, refined=refined)
+    fits = [fit("wind", 57.8, 64.7), fit("damping_scale", 59.7, 59.6), fit("imu_bias", 64.5, 64.9),
+            fit("payload", 50.0, np.nan, refined=False)]
+    ctx = SimpleNamespace(pred=None, train=None, held=None, sigma=None, log=lambda *a: None)
+    W._keep_promise(ctx, fits, [None] * len(fits), [])
+    assert polished == ["wind"]
+
+
 def test_few_resampled_flights_widen_the_interval_by_students_t():
     """4 training flights: t(3) over the normal quantile times sqrt(4/3); many windows: nearly 1."""
     from scipy.stats import norm, t
