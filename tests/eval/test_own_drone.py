@@ -6,11 +6,13 @@ seeds 0-2) is results/fleet_tripod/. On this machine, seeds 0 / 1 / 2 of this re
 after 2 s 0.067 / 0.17 / 0.038 m off, reach 0.128 / 0.186 / 0.018 m (tolerance 0.249 m); with
 SHRUNK's 800 transitions, or 2,000-4,000 and 10 epochs (quadratic), ours lost the tripod within
 0.8 s, with 7,000 (linear) seed 0 in 0.9 s (scratch, 2026-11-27): this is the smallest data tried
-that held every seed up. On a later machine (another CPU: the force kernels are built with
--march=native and -ffast-math, so they round otherwise, and a 10-epoch model's closed loop
-carries that far) seed 0 ended its reach 0.48 m off, past the fleet's tolerance but most of
-the way: the reduced test asks for 70% of the trip; the full recipe's own tolerance is
-results/fleet_tripod's."""
+that held every seed up. On a fresh machine on 2026-11-28, with no change to the simulator,
+learning or control code, seed 0 ended its reach 0.48 m off (deterministically; also with older
+pandas, numpy and scipy): past the fleet's tolerance but most of the way. The cause is not
+verified; the likely one is the CPU, since the force kernels build with -march=native and
+-ffast-math and a 10-epoch model's closed loop carries rounding far. So this reduced test's
+reach bound is LOOSENED to 70% of the trip (3 tolerances); the fleet's own tolerance is checked
+by the full recipe, results/fleet_tripod."""
 import pandas as pd
 import pytest
 
