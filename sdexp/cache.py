@@ -64,6 +64,43 @@ def _default(f: dataclasses.Field) -> Any:
     return f.default_factory() if f.default is dataclasses.MISSING and f.default_factory is not dataclasses.MISSING else f.default
 
 
+def content_digest(*objs: Any) -> str:
+    """A hash of the values in ``objs``, for artefacts made from built objects rather than from a
+    config (a drone as meshed, a FEM model): arrays by dtype, shape and bytes, dataclasses field by
+    field (every field: a config's threads too, which change a simulation's last bits), lists and
+    dicts item by item, anything else by its repr."""
+    h = hashlib.sha256()
+
+    def feed(o: Any) -> None:
+        if isinstance(o, np.ndarray):
+            a = np.ascontiguousarray(o)
+            h.update(f"<{a.dtype}{a.shape}>".encode())
+            h.update(a.tobytes())
+        elif dataclasses.is_dataclass(o) and not isinstance(o, type):
+            h.update(f"{type(o).__name__}(".encode())
+            for f in dataclasses.fields(o):
+                h.update(f"{f.name}=".encode())
+                feed(getattr(o, f.name))
+            h.update(b")")
+        elif isinstance(o, (list, tuple)):
+            h.update(b"[")
+            for v in o:
+                feed(v)
+            h.update(b"]")
+        elif isinstance(o, dict):
+            h.update(b"{")
+            for k in sorted(o, key=str):
+                h.update(f"{k!r}:".encode())
+                feed(o[k])
+            h.update(b"}")
+        else:
+            h.update(f"{type(o).__name__}:{o!r};".encode())
+
+    for o in objs:
+        feed(o)
+    return h.hexdigest()[:24]
+
+
 def key_of(kind: str, version: int, payload: Any) -> str:
     text = json.dumps({"kind": kind, "version": version, "payload": payload}, sort_keys=True, default=str)
     return f"{kind}-{hashlib.sha256(text.encode()).hexdigest()[:16]}"

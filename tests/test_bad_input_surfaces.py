@@ -575,7 +575,7 @@ def test_the_workflow_names_nothing_from_too_few_flights(tmp_path, cache_dir):
     from tests.conftest import make_config
     cfg = make_config(*SMALL, "experiment=discrepancy", f"cache_dir={cache_dir}")
     d = cfg.discrepancy
-    cfg = replace(cfg, discrepancy=replace(d, candidates=["payload", "stiffness_scale"], floor_flights=2,
+    cfg = replace(cfg, discrepancy=replace(d, candidates=["payload"], floor_flights=2,
                                            record=replace(d.record, flights=3)))
     drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
     record(cfg, drone, tmp_path / "logs", [{"name": "payload", "mass": 0.3, "point": [0.6, 0.0, 0.8]}], seed=12)

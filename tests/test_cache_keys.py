@@ -28,3 +28,22 @@ def test_fields_added_with_list_defaults_stay_out_of_the_key_until_set():
     assert config_key(DroneConfig(imus=[[0.0, 1.0]]))["imus"] == [[0.0, 1.0]]
     assert not {"scale", "digest"} & set(config_key(MeshConfig()))
     assert config_key(MeshConfig(scale=0.001))["scale"] == 0.001
+
+
+def test_a_content_digest_follows_every_value_and_nothing_else():
+    """content_digest keys artefacts made from built objects (the shape-holding hover thrust of a
+    drone as meshed): equal content, equal digest; any array, field or threads count, another."""
+    from dataclasses import replace
+    import numpy as np
+    from sdexp.cache import content_digest
+    from sdexp.config import SimConfig
+    a = {"x": np.arange(6.0).reshape(2, 3), "n": 3}
+    assert content_digest(a) == content_digest({"n": 3, "x": np.arange(6.0).reshape(2, 3)})
+    assert content_digest(a) != content_digest({"x": np.arange(6.0).reshape(3, 2), "n": 3})   # shape
+    assert content_digest(a) != content_digest({"x": np.arange(6, dtype=np.float32).reshape(2, 3), "n": 3})
+    ulp = a["x"].copy()
+    ulp[1, 2] = np.nextafter(ulp[1, 2], 10.0)   # one bit
+    assert content_digest(a) != content_digest({"x": ulp, "n": 3})
+    sim = SimConfig()
+    assert content_digest(sim) == content_digest(replace(sim))
+    assert content_digest(sim) != content_digest(replace(sim, threads=int(sim.threads) + 1))

@@ -133,7 +133,7 @@ def flight_errors(flight, dyn, since: float) -> dict:
             "max_position_deviation": float(dp.max())}
 
 
-def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
+def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0, cache_dir=None) -> dict:
     """Whether the body can fly at all, apart from any controller: thrust-to-weight, the largest
     rotor's share of Tmax in the rest shape's minimum-norm hover thrust, the largest bend (deg)
     and the drop (m) after holding that thrust ``hold_seconds`` open loop, noise-free, the rank of
@@ -162,7 +162,7 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
            "lift_tilt_rank": int(np.linalg.matrix_rank(W[level])), "lift_tilt_needed": len(level),
            "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1]),
            "deform_reach_deg": deform_reach(drone, sim_cfg, hold_seconds),
-           **shape_hover_fold(drone, sim_cfg, hold_seconds)}
+           **shape_hover_fold(drone, sim_cfg, hold_seconds, cache_dir)}
     if trained is not None:
         for name, h in trained.history.items():
             kept = h[h["selected"]] if "selected" in h and h["selected"].any() else h.tail(1)
@@ -170,13 +170,13 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0) -> dict:
     return out
 
 
-def shape_hover_fold(drone, sim_cfg, hold_seconds: float = 2.0) -> dict:
+def shape_hover_fold(drone, sim_cfg, hold_seconds: float = 2.0, cache_dir=None) -> dict:
     """The largest bend (deg) after holding the shape-holding hover thrust ``hold_seconds`` open
     loop, noise-free, and whether the hold blew up: what is left of the fold when the rotors'
     thrust is spread to keep the body flat rather than evenly (the leaf: 63 deg evenly, 6 shaped)."""
     from sdexp.sim.rigid.statics import hold_state, shape_hover_thrust
 
-    _, st, sane = hold_state(drone, sim_cfg, shape_hover_thrust(drone, sim_cfg), hold_seconds)
+    _, st, sane = hold_state(drone, sim_cfg, shape_hover_thrust(drone, sim_cfg, cache_dir=cache_dir), hold_seconds)
     return {"shape_hover_fold_deg": float(np.rad2deg(np.abs(st.s)).max()) if st.s.size else 0.0,
             "shape_hover_blew_up": not sane}
 
@@ -364,7 +364,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         result["seconds"]["learning"] = time.perf_counter() - t0
         phase = "physics"
         t1 = time.perf_counter()
-        result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained), **model_at_hover(setup)}
+        result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained, cache_dir=job_cfg.cache_dir), **model_at_hover(setup)}
         result["seconds"]["physics"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         trip = float(p.reach_lengths) * body_length(setup)
@@ -500,7 +500,7 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
         if "deform_reach_deg" not in phys:
             phys["deform_reach_deg"] = deform_reach(setup.drone, setup.cfg.sim)
         if "shape_hover_fold_deg" not in phys:
-            phys.update(shape_hover_fold(setup.drone, setup.cfg.sim))
+            phys.update(shape_hover_fold(setup.drone, setup.cfg.sim, cache_dir=setup.cfg.cache_dir))
         write_job(job_path(jobs_dir, name, seed), res)
 
 

@@ -163,7 +163,7 @@ def simulate_flight(cfg, seconds: float, seed: int, attempts: int = 5):
     dt = float(cfg.sim.control_dt)
     steps = int(round(seconds / dt))
     best = None
-    draw = thrust_draw(drone, cfg.data, cfg.sim)
+    draw = thrust_draw(drone, cfg.data, cfg.sim, cfg.cache_dir)
     for attempt in range(attempts):
         sim = Simulator(drone, cfg.sim, cfg.noise, seed + attempt)
         cmds = commands(drone, cfg.data, draw, dt, np.random.default_rng(seed + attempt))

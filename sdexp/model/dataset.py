@@ -185,7 +185,7 @@ def _generate(spec: dict, key: str, final: Path, workers: int) -> Dataset:
     if todo:
         from sdexp.model.generate import _simulator, sim_config, thrust_draw
         drone, _ = _simulator(spec)  # mesh once (cached) and fail early on a bad drone, before any worker
-        spec = {**spec, "draw": thrust_draw(drone, spec["data"], sim_config(spec))}  # once, not per worker
+        spec = {**spec, "draw": thrust_draw(drone, spec["data"], sim_config(spec), spec["cache_dir"])}  # once, not per worker
     t0 = time.perf_counter()
     # (an error or a kill closes the phase with a line that says it stopped)
     with Phase(f"data generation {spec['drone'].name} ({workers} worker{'s' if workers > 1 else ''})",

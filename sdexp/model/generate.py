@@ -109,7 +109,7 @@ def _deformation(rng: np.random.Generator, patterns: np.ndarray, largest: float)
     return rng.uniform(0.0, largest) * v / np.abs(v).max()
 
 
-def thrust_draw(drone, data, sim_cfg) -> tuple[np.ndarray | float, np.ndarray | float]:
+def thrust_draw(drone, data, sim_cfg, cache_dir=None) -> tuple[np.ndarray | float, np.ndarray | float]:
     """(centre, scale) of the data recipe's thrust draw, each per rotor or one for all: every hold
     draws ``centre + scale x U[lo, hi] x Tmax``. The centre is 0 (the paper's), or with
     ``around_hover`` the rest shape's hover thrust (``hover: rigid``) or the one that holds the
@@ -124,7 +124,7 @@ def thrust_draw(drone, data, sim_cfg) -> tuple[np.ndarray | float, np.ndarray | 
     if data.around_hover:
         if data.hover == "shape":
             from sdexp.sim.rigid.statics import shape_hover_thrust
-            centre = shape_hover_thrust(drone, sim_cfg)
+            centre = shape_hover_thrust(drone, sim_cfg, cache_dir=cache_dir)
         else:
             centre = rest_hover_thrust(drone, float(sim_cfg.gravity))
     if data.bend_budget_deg is None or drone.layout.n_s == 0:
@@ -173,7 +173,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     float32 arrays (``episode`` local to the chunk), and a summary of how the episodes ended."""
     t_start, cpu_start = time.perf_counter(), time.process_time()
     drone, sim = _simulator(spec)
-    draw = spec["draw"] if "draw" in spec else thrust_draw(drone, spec["data"], sim_config(spec))
+    draw = spec["draw"] if "draw" in spec else thrust_draw(drone, spec["data"], sim_config(spec), spec["cache_dir"])
     data = spec["data"]
     dt = float(spec["sim"].control_dt)
     rows = _Rows(n, widths(drone.layout.dim, drone.layout.n_s, drone.num_rotors), progress)

@@ -1,6 +1,7 @@
 """Training data: layout, the paper's thrust holds, determinism across workers, the cache
 (hit, resume after a kill, stale entries), the split by episodes and physical consistency."""
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -258,15 +259,23 @@ def test_around_hover_centres_the_holds_on_the_hover_thrust(tmp_path):
     assert dataset_key(dataset_spec(rigid, CHUNK)) == dataset_key(dataset_spec(cfg, CHUNK))
 
 
-def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path):
+def test_shape_hover_centres_the_holds_on_the_shape_holding_thrust(tmp_path, monkeypatch):
     from sdexp.sim.drone import build_drone
     from sdexp.sim.rigid.statics import shape_hover_thrust
 
     cfg = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]",
                    "data.hover=shape")
     u = load_dataset(cfg, CHUNK).arrays["u"]
-    shape = shape_hover_thrust(build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element), cfg.sim)
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
+    shape = shape_hover_thrust(drone, cfg.sim)
     assert np.all(np.abs(u - shape) <= 0.01 * float(cfg.drone.max_thrust) + 1e-5)
+    # the data found it once; with the cache it is read (bit for bit), not held again
+    from sdexp.sim.rigid import statics
+    monkeypatch.setattr(statics, "_shape_hover_thrust", lambda *a: pytest.fail("found again, not read"))
+    np.testing.assert_array_equal(shape_hover_thrust(drone, cfg.sim, cache_dir=cfg.cache_dir), shape)
+    heavier = replace(cfg.sim, gravity=1.5 * float(cfg.sim.gravity))   # another world is never read from it
+    with pytest.raises(pytest.fail.Exception, match="found again"):
+        shape_hover_thrust(drone, heavier, cache_dir=cfg.cache_dir)
     rigid = small_config(str(tmp_path), "data=near_hover", "data.samples=400", "data.thrust_range=[-0.01,0.01]")
     assert dataset_key(dataset_spec(rigid, CHUNK)) != dataset_key(dataset_spec(cfg, CHUNK))
 

@@ -75,6 +75,21 @@ def test_stable_substep_is_near_the_limit(block):
         assert (np.abs(body.v).max() < 1.0) == ok
 
 
+def test_stable_substep_is_found_once_per_body_content(block, monkeypatch):
+    """Every simulator of a body (a fleet job builds dozens) shares one power iteration: a copy
+    of the model reads it, a changed mass or safety does not."""
+    from copy import deepcopy
+    from sdexp.sim.physics import fem
+    dt = stable_substep(block, 1.0)
+    calls = []
+    real = fem._power_iteration
+    monkeypatch.setattr(fem, "_power_iteration", lambda *a: calls.append(1) or real(*a))
+    assert stable_substep(deepcopy(block), 1.0) == dt and not calls
+    heavier = stable_substep(block, 1.0, mass=2.0 * block.mass)
+    assert heavier == pytest.approx(np.sqrt(2.0) * dt, rel=1e-6) and len(calls) == 1
+    assert stable_substep(block, 0.5) == real(block, block.mass, 0.5, 60, 0) and len(calls) == 2
+
+
 def test_homogeneous_plane_strain_matches_3d_and_theory():
     """Stretch a block by 1% in x with no strain in z: the 3D and the 2D plane-strain models
     both give sigma_xx = (lambda + 2 mu) eps on the x = L face."""

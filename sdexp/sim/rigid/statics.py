@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from sdexp.cache import cached_arrays, content_digest, key_of
 from sdexp.config import NoiseConfig
 from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body
 from sdexp.sensing import decompose
@@ -104,12 +105,27 @@ def rotor_compliance(drone, sim_cfg, u: np.ndarray, seconds: float = 1.0, step: 
                      for i in range(len(u))])
 
 
-def shape_hover_thrust(drone, sim_cfg, seconds: float = 2.0, iterations: int = 3, step: float = 0.1) -> np.ndarray:
+SHAPE_HOVER_FORMAT = 1   # bump when shape_hover_thrust (or the simulation it holds) changes what it finds
+
+
+def shape_hover_thrust(drone, sim_cfg, seconds: float = 2.0, iterations: int = 3, step: float = 0.1,
+                       cache_dir=None) -> np.ndarray:
     """The rest-shape hover thrust plus the deformation pattern that keeps the bends smallest
     after ``seconds`` of holding it (Gauss-Newton on s over the pattern coefficients, finite
     differences of ``step`` N), within +-Tmax. The rigid hover thrust spreads the weight evenly
     over the rotors; a soft body's mass is not spread like its rotors, so that thrust bends it
-    (the rod: its ends curl 54 deg in 1 s and it falls; with this thrust 10 deg)."""
+    (the rod: its ends curl 54 deg in 1 s and it falls; with this thrust 10 deg).
+    With ``cache_dir`` it is found once per body and simulator config (their content) and read
+    from the cache after: the data recipe centres on it and the fleet's physics holds it again,
+    for every seed, and it costs 3 x (patterns + 1) holds (the octopus: 21 of 2 s each)."""
+    if cache_dir is None:
+        return _shape_hover_thrust(drone, sim_cfg, seconds, iterations, step)
+    key = key_of("shapehover", SHAPE_HOVER_FORMAT, {"body": content_digest(drone), "sim": content_digest(sim_cfg),
+                                                    "seconds": seconds, "iterations": iterations, "step": step})
+    return cached_arrays(cache_dir, key, lambda: {"u": _shape_hover_thrust(drone, sim_cfg, seconds, iterations, step)})["u"]
+
+
+def _shape_hover_thrust(drone, sim_cfg, seconds: float, iterations: int, step: float) -> np.ndarray:
     u = rest_hover_thrust(drone, float(sim_cfg.gravity))
     null = deformation_patterns(drone)
     if null.shape[1] == 0 or drone.layout.n_s == 0:
