@@ -96,7 +96,21 @@ def scenarios(drone, names, seeds: int, nulls: int, combos: bool, unmodelled: in
             out.append({"id": f"{uid}-{s}", "kind": "unmodelled", "truth": [uid], "effects": [entry],
                         "seed": seed0 + 1000 + k})
             k += 1
-    return out
+    return [dict(sc, effects=portable(sc["effects"])) for sc in out]
+
+
+def portable(x):
+    """``x`` with every float rounded to 12 significant digits: a scenario drawn from the same
+    seed must be the same scenario on every machine, and some of its numbers are reductions
+    whose last bits follow the CPU's BLAS kernels (a payload's point is mass @ rest); a row
+    finished on one machine is then found again by its key on another."""
+    if isinstance(x, float):
+        return float(f"{x:.12g}")
+    if isinstance(x, dict):
+        return {k: portable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [portable(v) for v in x]
+    return x
 
 
 def select(scs: list[dict], only) -> list[dict]:

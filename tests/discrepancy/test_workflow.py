@@ -115,6 +115,23 @@ def test_a_finished_scenario_is_reused_only_under_its_own_key(tmp_path):
     assert finished_row(tmp_path, "k1") is None
 
 
+def test_a_scenario_is_the_same_on_a_machine_whose_sums_differ_in_the_last_bit():
+    """A payload's point is mass @ rest, whose last bits follow the CPU's BLAS kernels: a bench
+    resumed on another machine must draw the same scenario (and so find its finished row)."""
+    from types import SimpleNamespace
+    from sdexp.discrepancy.bench import scenarios
+    rng = np.random.default_rng(0)
+    rest, mass = rng.normal(size=(50, 3)), rng.uniform(0.5, 1.5, 50)
+    other = rest.copy()
+    other[np.abs(other) > 1e-3] = np.nextafter(other[np.abs(other) > 1e-3], np.inf)   # one ulp off everywhere
+    draw = lambda r: scenarios(SimpleNamespace(fem=SimpleNamespace(rest=r, mass=mass), dim=3, num_rotors=4),
+                               ["payload", "imu_bias"], 2, 0, False, 0, levels=(1,))
+    a, b = draw(rest), draw(other)
+    assert a == b
+    raw = mass @ rest / mass.sum()
+    assert np.allclose(a[0]["effects"][0]["point"][1], raw[1], rtol=1e-11)   # rounded, not moved
+
+
 def test_summary_counts_ties_nulls_and_gap():
     import pandas as pd
     t = pd.DataFrame([
