@@ -194,6 +194,7 @@ class _Naming:
     r_floor: np.ndarray
     w_floor: Windows
     rng: np.random.Generator
+    shortfall: str | None = None   # too few flights for the naming test: nothing is named
 
     def table_on(self, r, w) -> pd.DataFrame:
         return localize(r, w, self.r_floor, self.w_floor, self.sigma, self.drone.dim, self.drone.layout.n_s)
@@ -312,7 +313,7 @@ def _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, cache_dir: str,
     train = thin(train_all, int(dcfg.fit_windows))
     pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend, bend_for)
     ctx = _Naming(drone, sim_cfg, noise_cfg, dcfg, seed, log, laps, pred, cands, train_all, train, held,
-                  sigma, r_floor, w_floor, np.random.default_rng(seed))
+                  sigma, r_floor, w_floor, np.random.default_rng(seed), shortfall)
     return ctx, logs, w_all, (train_ids, held_ids), h, shortfall
 
 
@@ -448,8 +449,9 @@ def _name(ctx: _Naming, r_train, r_held, held_nom_w, floor_w) -> _Named:
         if len(passing) <= 1:
             polish(best, cand_of[best.name], pred, train, held, sigma, base, iters=1)
         laps.lap(f"round {rnd + 1}: {best.name} polished")
-        profile(best, cand_of[best.name], pred, train, held, sigma, base)
-        laps.lap(f"round {rnd + 1}: {best.name}'s intervals profiled")
+        if ctx.shortfall is None:   # one that cannot be named gets no intervals (nor their refinement of its point)
+            profile(best, cand_of[best.name], pred, train, held, sigma, base)
+            laps.lap(f"round {rnd + 1}: {best.name}'s intervals profiled")
         accepted.append(best)
         if rnd == 0:
             verdict, ties = v, [t.name for t in tie]
