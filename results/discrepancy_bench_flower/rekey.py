@@ -39,6 +39,6 @@ for sc in scs:
     print(sc["id"], "rest of key matches:", same_rest, "effects within 1e-12:", close, "max diff", np.abs(a - b).max() if a.shape == b.shape and a.size else None)
     if same_rest and close and "--write" in sys.argv:
         done["key"] = key
-        done["rekeyed"] = "scenario floats differ from this machine's in the last bits only (results/discrepancy_bench_flower_3109533/rekey.py)"
+        done["rekeyed"] = "scenario floats differ from this machine's in the last bits only (results/discrepancy_bench_flower/rekey.py)"
         f.write_text(json.dumps(done))
         print("  re-keyed")
