@@ -225,8 +225,8 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     dt = float(sim_cfg.control_dt)
-    ctx, logs, w_all, (train_ids, held_ids), h, shortfall = _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg,
-                                                                   measured, cache_dir, seed, log)
+    ctx, logs, w_all, (train_ids, held_ids), h = _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg,
+                                                        measured, cache_dir, seed, log)
     pred, laps, sigma, train_all, train, held = ctx.pred, ctx.laps, ctx.sigma, ctx.train_all, ctx.train, ctx.held
     floor_w = window_loss(ctx.r_floor, sigma)
 
@@ -241,7 +241,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
     held_nom_w = window_loss(r_held, sigma)
     named = _name(ctx, r_train, r_held, held_nom_w, floor_w)
     not_significant = []
-    if shortfall is not None and named.accepted:
+    if ctx.shortfall is not None and named.accepted:
         # too few flights for the test that named them: shown, not named, and not added
         not_significant = [{"name": f.name, "params": f.params, "held_loss": f.held_loss} for f in named.accepted]
         log(f"discrepancy: not significant with these flights: {', '.join(f.name for f in named.accepted)}")
@@ -267,7 +267,7 @@ def run_workflow(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, out_dir: 
         "effects": effects,
         "ties": named.ties,
         "confusable": named.confusable,
-        "not_significant": _jsonable(not_significant), "too_few_flights": shortfall,
+        "not_significant": _jsonable(not_significant), "too_few_flights": ctx.shortfall,
         "unexplained": _jsonable(hot) if verdict == "unexplained" else None,
         "remaining_above_floor": _jsonable(remaining_cell),
         "push": _jsonable(push_summary),
@@ -293,7 +293,7 @@ def _gap(before: float, after: float, floor: float) -> dict:
 
 def _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, cache_dir: str, seed: int, log):
     """The logs read and windowed, the bend map and the noise floor, the flights split:
-    (_Naming, logs, every window, (training ids, held-out ids), horizon steps, shortfall)."""
+    (_Naming, logs, every window, (training ids, held-out ids), horizon steps)."""
     laps = Laps(log)
     dt = float(sim_cfg.control_dt)
     logs = _read(drone, measured, dt)
@@ -314,7 +314,7 @@ def _setup(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, measured, cache_dir: str,
     pred = laps.pred = Predictor(drone, sim_cfg, noise_cfg, bend, bend_for)
     ctx = _Naming(drone, sim_cfg, noise_cfg, dcfg, seed, log, laps, pred, cands, train_all, train, held,
                   sigma, r_floor, w_floor, np.random.default_rng(seed), shortfall)
-    return ctx, logs, w_all, (train_ids, held_ids), h, shortfall
+    return ctx, logs, w_all, (train_ids, held_ids), h
 
 
 def _show(ctx: _Naming, named: _Named, r_held, logs, dt: float, out_dir: Path, plots: bool) -> list[dict]:
