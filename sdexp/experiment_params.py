@@ -7,9 +7,9 @@ whose ``__post_init__`` checks the ranges.
 
 A field's ``metadata`` says what is allowed beyond its type: ``range`` (sdexp.ranges: a
 predicate and its text, applied to every number of a list or mapping) and ``names`` (every value must name one
-of those: an option of that config group, a drone or an experiment, or with "controller" a
-registered controller; checked where the configs and the registry are known, before the
-conversion: sdexp.eval.run.check_names).
+of those: an option of that config group, a drone or an experiment, with "controller" a
+registered controller, with "effect" an effect of the library; checked where the configs and the
+registries are known, before the conversion: sdexp.eval.run.check_names).
 """
 from __future__ import annotations
 
@@ -259,8 +259,11 @@ class DiscrepancyParams(Params):
 
 @dataclass
 class DiscrepancyBenchParams(Params):
-    effects: Optional[List[str]] = None    # null = the whole library
-    levels: List[int] = _param([0, 1])      # 0 moderate, 1 strong (each effect's bench_strengths)
+    """sdexp.discrepancy.bench; what needs the drone or the folders (rescore, scenario_dir, only)
+    is checked by its check (sdexp.discrepancy.bench.check) before anything is written."""
+    effects: Optional[List[str]] = _param(None, names="effect")   # null = the whole library
+    # 0 moderate, 1 strong: the two strengths each effect's bench_strengths gives
+    levels: List[int] = _param([0, 1], lambda v: v in (0, 1), "0 (moderate) or 1 (strong)")
     seeds: int = param(2, nonnegative())            # per effect and strength
     nulls: int = param(20, nonnegative())
     combos: bool = True
@@ -273,6 +276,12 @@ class DiscrepancyBenchParams(Params):
     rescore: bool = False                  # true: recompute the gap columns of an earlier run in the same folder
     scenario_dir: Optional[str] = None     # where each scenario's logs and reports go; null = <run dir>/scenarios
     only: Optional[List[str]] = None       # scenario ids to run, e.g. [payload-b0]; the others skipped, every draw unchanged
+
+    def check(self) -> None:
+        # a repeated effect or level would draw scenarios of the same id into one folder
+        for key, value in (("effects", self.effects), ("levels", self.levels)):
+            if value is not None and len(set(value)) != len(value):
+                raise UserError(f"{PREFIX}{key} = {list(value)!r}: allowed distinct {key}")
 
 
 @dataclass

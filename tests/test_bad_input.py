@@ -137,6 +137,16 @@ def rejected(*overrides) -> str:
     ("experiment=fleet experiment.params.controllers=[neural]", "experiment.params.controllers",
      "allowed a non-empty list of ours, rigid_lqr, geometry_lqr"),
     ("experiment.params.animate=true", "experiment.params.animate", "not a ListConfig, list or tuple"),
+    # the discrepancy bench: library effects by name, the two bench strengths, each once
+    ("experiment=discrepancy_bench experiment.params.effects=[nosuch]", "experiment.params.effects: effect 'nosuch'",
+     "choose from rotor_reaction_torque, rotor_drag"),
+    ("experiment=discrepancy_bench experiment.params.levels=[2]", "experiment.params.levels = [2]",
+     "allowed 0 (moderate) or 1 (strong)"),
+    ("experiment=discrepancy_bench experiment.params.effects=[wind,wind]", "experiment.params.effects = ['wind', 'wind']",
+     "allowed distinct effects"),
+    # an effect written through the plugin protocol declares its ranges as the library's do
+    ("+sim.effects=[{_target_:sdexp.discrepancy.bench_effects.ThrustCurve,a:2}]", "sim.effects[0] (thrust_curve)",
+     "thrust_curve.a = 2 is out of range: allowed in [0, 1]"),
     ("experiment=obstacle experiment.params.animate=[ours]", "experiment.params.animate", "not a valid bool"),
 ])
 def test_bad_config_values_name_the_key_and_the_allowed_values(override, key, allowed):
@@ -184,6 +194,19 @@ def test_hydra_config_errors_are_one_line_with_the_user_error_code(tmp_path, arg
 def test_a_bad_value_exits_2_in_one_line_and_leaves_no_run_folder(tmp_path):
     assert_one_line_error(sdexp("drone.mass=inf", cwd=tmp_path), "drone.mass", "> 0 kg")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args, words", [
+    (["experiment.params.rescore=true"], ["experiment.params.rescore = true", "scenarios.csv does not exist",
+                                          "allowed only in the folder of an earlier bench run"]),
+    (["experiment.params.scenario_dir=afile"], ["experiment.params.scenario_dir = 'afile'", "is a file",
+                                                "allowed a folder"]),
+])
+def test_the_discrepancy_bench_refuses_its_folders_in_one_line_before_writing(tmp_path, args, words):
+    (tmp_path / "afile").write_text("not a folder")
+    res = sdexp("experiment=discrepancy_bench", *args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert_one_line_error(res, *words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
 
 
 def test_a_misspelled_controller_stops_the_run_before_its_data(tmp_path):

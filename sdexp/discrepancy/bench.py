@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import yaml
 
 from sdexp.cache import atomic_write
 from sdexp.discrepancy import bench_effects
-from sdexp.errors import UserError
+from sdexp.errors import FULL, UserError, one_line
 from sdexp.sim.physics.effects import LIBRARY
 
 log = logging.getLogger(__name__)
@@ -125,19 +126,38 @@ def select(scs: list[dict], only) -> list[dict]:
     return [sc for sc in scs if sc["id"] in set(only)]
 
 
+FAILED = "failed"   # the verdict of a scenario that raised: its row says why (``error``), the bench goes on
+
+
 def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, cache_dir: str, report=None) -> dict:
-    """Record the scenario's logs with its hidden effects, run the workflow, compare."""
+    """Record the scenario's logs with its hidden effects, run the workflow, compare. A scenario
+    that raises is a row with verdict ``failed`` and its ``error`` (not kept for resuming: a
+    rerun tries it again); a full disk ends the bench (every scenario after it would fail too)."""
+    t0 = time.perf_counter()
+    try:
+        row = _scenario_row(sc, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir, cache_dir, t0)
+    except Exception as err:   # noqa: BLE001 - one scenario's failure is its row, not the bench's end
+        if isinstance(err, OSError) and err.errno in FULL:
+            raise
+        log.warning(f"discrepancy_bench: scenario {sc['id']} failed: {type(err).__name__}: {one_line(err)}")
+        row = {"id": sc["id"], "kind": sc["kind"], "truth": "+".join(sc["truth"]) or "none", "verdict": FAILED,
+               "top1": FAILED, "named": "", "ties": "", "seconds": time.perf_counter() - t0,
+               "true_effects": json.dumps(sc["effects"]), "fitted": "[]",
+               "error": f"{type(err).__name__}: {one_line(err)}"}
+    if report:
+        report(1)
+    return row
+
+
+def _scenario_row(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, cache_dir: str, t0: float) -> dict:
     from sdexp.discrepancy.record import record_flights
     from sdexp.discrepancy.workflow import run_workflow
     from sdexp.sim.drone import build_drone
 
-    t0 = time.perf_counter()
     folder = Path(out_dir) / sc["id"]
     key = scenario_key(sc, drone_cfg, sim_cfg, noise_cfg, dcfg)
     row = finished_row(folder, key)
     if row is not None:   # a run killed after this scenario resumes here (as does one that shares scenario_dir)
-        if report:
-            report(1)
         return row
     drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
     r = dcfg.record
@@ -158,8 +178,6 @@ def run_scenario(sc: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, out_dir: str, ca
     row.update(oracle_gap(sc, folder, drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir))
     if key is not None:
         atomic_write(folder / ROW_FILE, lambda tmp: tmp.write_text(json.dumps({"key": key, "row": row})))
-    if report:
-        report(1)
     return row
 
 
@@ -245,22 +263,33 @@ def param_fit(sc: dict, rep: dict) -> dict:
 
 
 def rescore_row(row: dict, drone_cfg, sim_cfg, noise_cfg, dcfg, scen_dir: str, cache_dir: str, report=None) -> dict:
-    """oracle_gap for a scenario already run (a row of scenarios.csv and its folder)."""
+    """oracle_gap for a scenario already run (a row of scenarios.csv and its folder); a failed
+    one has nothing to score."""
     from sdexp.sim.drone import build_drone
-    drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
-    sc = {"effects": json.loads(row["true_effects"])}
-    out = {**row, **oracle_gap(sc, Path(scen_dir) / row["id"], drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)}
+    out = row
+    if row["verdict"] != FAILED:
+        drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
+        sc = {"effects": json.loads(row["true_effects"])}
+        out = {**row, **oracle_gap(sc, Path(scen_dir) / row["id"], drone, drone_cfg, sim_cfg, noise_cfg, dcfg,
+                                   cache_dir)}
     if report:
         report(1)
     return out
 
 
 def summarize(table: pd.DataFrame) -> dict:
+    """The bench's figures over the scenarios that ran; those that failed are listed with why
+    (``failed_scenarios``), not scored."""
     table = table.copy()
     for col in ("named", "ties", "top1", "truth", "verdict"):   # empty cells read back as NaN
         table[col] = table[col].fillna("").astype(str)
+    failed = {r.get("id"): r.get("error") for r in table[table.verdict == FAILED].to_dict("records")}
+    head = {"scenarios": int(len(table)), "scenarios_failed": len(failed), "failed_scenarios": failed}
+    table = table[table.verdict != FAILED]
+    if table.empty:
+        return {**head, "targets_met": {}}
     single = table[table.kind == "single"]
-    out = {"scenarios": int(len(table)), **_answers(table), **_gaps(table[table.kind.isin(["single", "combo"])])}
+    out = {**head, **_answers(table), **_gaps(table[table.kind.isin(["single", "combo"])])}
     out.update({
         "scenario_seconds_median": float(np.median(table.seconds)) if "seconds" in table else None,
         "scenario_seconds_total": float(np.sum(table.seconds)) if "seconds" in table else None,
@@ -412,6 +441,85 @@ def confusion_plot(cm: pd.DataFrame, path) -> None:
     save_figure(fig, path, dpi=120)
 
 
+NEEDS_3D = ("rotor_reaction_torque",)   # a 2D rotor has no spin axis
+
+
+def effect_names(params, dim: int) -> list[str]:
+    """The library effects the bench hides: experiment.params.effects, or where null those of the
+    library a ``dim``-D drone has."""
+    names = list(params.effects or LIBRARY)
+    flat = [n for n in names if n in NEEDS_3D]
+    if dim == 2 and flat and params.effects:
+        raise UserError(f"experiment.params.effects = {names!r}: {flat[0]} needs a 3D drone: allowed on this 2D "
+                        f"drone {', '.join(n for n in LIBRARY if n not in NEEDS_3D)}")
+    return [n for n in names if dim == 3 or n not in NEEDS_3D]
+
+
+def bench_scenarios(drone, params, seed: int) -> list[dict]:
+    """The scenarios experiment.params asks for (``only``: those of them it names)."""
+    scs = scenarios(drone, effect_names(params, drone.dim), int(params.seeds), int(params.nulls), bool(params.combos),
+                    int(params.unmodelled), seed, tuple(params.levels or (0, 1)), int(params.variants))
+    return select(scs, params.only)
+
+
+def scenario_folder(params, out_dir: Path) -> Path:
+    """Where each scenario's logs and workflow outputs go (~1.5 MB each): experiment.params.scenario_dir
+    (outside a results folder), else <run dir>/scenarios."""
+    return Path(str(params.scenario_dir)).expanduser() if params.scenario_dir else Path(out_dir) / "scenarios"
+
+
+def check(params, out_dir: Path, drone_cfg, sim_cfg, cache_dir: str, seed: int) -> None:
+    """The bench's parameters that the folders and the drone must allow, in one pass before
+    anything is written (their types, ranges and names are the params' own checks,
+    sdexp.experiment_params): the effects on this drone, the scenario folder, an earlier run to
+    rescore, the scenarios ``only`` names (the drone is built for those only)."""
+    effect_names(params, int(drone_cfg.dim))
+    scen_dir = scenario_folder(params, out_dir)
+    if params.scenario_dir:   # the run folder's own is the run's to check (sdexp.eval.run)
+        _check_folder("experiment.params.scenario_dir", params.scenario_dir, scen_dir)
+    if params.rescore:
+        _check_rescore(Path(out_dir), scen_dir)
+    elif params.only:
+        from sdexp.sim.drone import build_drone
+        bench_scenarios(build_drone(drone_cfg, cache_dir, sim_cfg.element), params, seed)
+
+
+def _check_folder(key: str, value, path: Path) -> None:
+    """``path`` is a folder, or can be made as one: its nearest existing parent is a writable folder."""
+    there = next(p for p in (path, *path.parents) if p.exists())
+    if not there.is_dir():
+        raise UserError(f"{key} = {value!r}: {there} is a file: allowed a folder (made if missing), or null "
+                        "for <run dir>/scenarios")
+    if not os.access(there, os.W_OK | os.X_OK):
+        raise UserError(f"{key} = {value!r}: {there} is not writable: allowed a folder this user can write, or "
+                        "null for <run dir>/scenarios")
+
+
+RESCORED = ("id", "verdict", "true_effects")   # the columns of scenarios.csv that rescoring reads
+
+
+def _check_rescore(out_dir: Path, scen_dir: Path) -> None:
+    """experiment.params.rescore: the run folder holds an earlier bench's scenarios.csv, and the
+    scenario folder each of its rows that ran (its logs and fitted simulator)."""
+    table = out_dir / "scenarios.csv"
+    where = ("allowed only in the folder of an earlier bench run (hydra.run.dir=<its folder>, its metrics.json "
+             "and config.yaml deleted), with experiment.params.scenario_dir where its scenario folders are")
+    try:
+        old = pd.read_csv(table, keep_default_na=False, na_values=[""])
+    except FileNotFoundError:
+        raise UserError(f"experiment.params.rescore = true: {table} does not exist: {where}") from None
+    except (OSError, ValueError) as err:
+        raise UserError(f"experiment.params.rescore = true: {table} cannot be read ({one_line(err)}): {where}") from None
+    missing = [c for c in RESCORED if c not in old]
+    if missing:
+        raise UserError(f"experiment.params.rescore = true: {table} has no column {missing[0]!r}: {where}")
+    for sid in old.id[old.verdict != FAILED]:
+        for need in (scen_dir / str(sid) / "logs", scen_dir / str(sid) / "workflow" / "sim_fitted.yaml"):
+            if not need.exists():
+                raise UserError(f"experiment.params.rescore = true: scenario {sid}'s {need} does not exist: "
+                                f"{where}")
+
+
 def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_dir: str, seed: int = 0,
               workers: int = 2, progress=None) -> dict:
     from sdexp.discrepancy.workflow import prepare
@@ -421,16 +529,10 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     drone = build_drone(drone_cfg, cache_dir, sim_cfg.element)
-    names = list(params.effects or LIBRARY)
-    if drone.dim == 2 and "rotor_reaction_torque" in names:
-        names.remove("rotor_reaction_torque")
-    scs = scenarios(drone, names, int(params.seeds), int(params.nulls), bool(params.combos),
-                    int(params.unmodelled), seed, tuple(params.levels or (0, 1)), int(params.variants))
-    scs = select(scs, params.only)
+    scs = bench_scenarios(drone, params, seed)
     prepare(drone, drone_cfg, sim_cfg, noise_cfg, dcfg, cache_dir)   # cache it once for every worker
     args = [drone_cfg, sim_cfg, noise_cfg, dcfg]   # what the spawned workers need, and nothing of the root config
-    # each scenario's logs and workflow outputs (~1.5 MB each): outside a results folder
-    scen_dir = str(params.scenario_dir or out_dir / "scenarios")
+    scen_dir = str(scenario_folder(params, out_dir))
     if params.rescore:
         # re-score the scenarios of an earlier run (its scenarios.csv and folders) with this code
         old = pd.read_csv(out_dir / "scenarios.csv", keep_default_na=False, na_values=[""]).to_dict("records")
@@ -451,6 +553,9 @@ def run_bench(drone_cfg, sim_cfg, noise_cfg, dcfg, params, out_dir: Path, cache_
     atomic_write(out_dir / "confusion.csv", lambda tmp: cm.to_csv(tmp))
     confusion_plot(cm, out_dir / "confusion.png")
     metrics = summarize(table)
+    if metrics["scenarios_failed"]:
+        log.warning(f"discrepancy_bench: {metrics['scenarios_failed']} of {len(table)} scenarios failed, "
+                    f"not scored: {metrics['failed_scenarios']}")
     metrics["wall_seconds"] = time.perf_counter() - t0
     metrics["workers"] = workers
     metrics["scenarios_resumed"] = 0 if params.rescore else resumed

@@ -5,11 +5,16 @@ Two kinds. ``VARIANTS`` have a fair library answer (a per-rotor spread of lags i
 one mean lag, a swinging hanging weight by a rigid payload): the bench scores whether that answer
 is named. ``UNMODELLED`` have none: the honest answer is ``unexplained`` (or, where part of the gap
 is a library effect's, that effect with the rest reported above the floor).
+
+Each declares its parameters' physical ranges (``ranges``, checked by its constructor as the
+library's effects do theirs): a value out of range is an error naming the key and the range.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from sdexp.errors import UserError
+from sdexp.ranges import between, nonnegative, positive, ranged
 from sdexp.sim.physics.effects import Effect, MotorLag, rotor_normals, vertex_areas
 
 
@@ -18,9 +23,16 @@ class RotorTilt(Effect):
     of its thrust pushes sideways."""
     name = "rotor_tilt"
     fit_params = {"angle": (-0.5, 0.5, 0.05)}   # rad: what a user declares to make it a candidate
+    ranges = {"angle": between(-1.5, 1.5, unit="rad (a mount tilted 90 deg lifts nothing)"), "rotor": nonnegative()}
 
     def __init__(self, angle: float = 0.15, rotor: int = 0):
+        self.check_params(angle=angle, rotor=rotor)
         self.angle, self.rotor = float(angle), int(rotor)
+
+    def setup(self, sim):
+        m = sim.drone.num_rotors
+        if self.rotor >= m:
+            raise UserError(f"sim.effects: rotor_tilt.rotor = {self.rotor} is out of range: allowed 0 to {m - 1}")
 
     def body_forces(self, sim, f):
         r = sim.drone.rotors
@@ -37,8 +49,12 @@ class RotorTilt(Effect):
 class PerRotorLag(MotorLag):
     """Each rotor follows its command through its own first-order lag (motors that differ)."""
     name = "per_rotor_lag"
+    ranges = {**MotorLag.ranges, "taus": nonnegative("s")}
 
     def __init__(self, taus=(0.05, 0.1)):
+        if not len(taus):
+            raise UserError("sim.effects: per_rotor_lag.taus = [] is out of range: allowed one or more >= 0 s")
+        self.check_params(taus=list(taus))
         super().__init__(float(np.min(taus)))
         self.taus = np.asarray(taus, dtype=float)
 
@@ -50,9 +66,12 @@ class HangingMass(Effect):
     """A weight hung on an elastic line below the body's centre: it swings, and pulls on the
     vertices it hangs from (a spring-damper to the attachment point, integrated each step)."""
     name = "hanging_mass"
+    ranges = {"mass": positive("kg"), "length": nonnegative("m"), "stiffness": positive("N/m"),
+              "damping": nonnegative("N s/m"), "radius": nonnegative("m")}
 
     def __init__(self, mass: float = 0.2, length: float = 0.5, stiffness: float = 20.0, damping: float = 0.5,
                  radius: float = 0.3):
+        self.check_params(mass=mass, length=length, stiffness=stiffness, damping=damping, radius=radius)
         self.mass, self.length, self.k, self.c, self.radius = mass, length, stiffness, damping, radius
 
     def setup(self, sim):
@@ -96,8 +115,10 @@ class ThrustCurve(Effect):
     """The rotors make less thrust than commanded at high commands (a propeller's thrust curve
     flattening, voltage drop under load): T = T_cmd (1 - a |T_cmd| / T_max)."""
     name = "thrust_curve"
+    ranges = {"a": between(0, 1)}   # 1: no thrust left at a full command; more would pull
 
     def __init__(self, a: float = 0.3):
+        self.check_params(a=a)
         self.a = float(a)
 
     def actuate(self, thrust, sim):
@@ -107,8 +128,10 @@ class ThrustCurve(Effect):
 class BatterySag(Effect):
     """The battery's voltage falls over the flight, and every rotor's thrust with it."""
     name = "battery_sag"
+    ranges = {"rate": nonnegative("1/s")}
 
     def __init__(self, rate: float = 0.02):
+        self.check_params(rate=rate)
         self.rate = float(rate)   # fraction of thrust lost per second of flight
 
     def actuate(self, thrust, sim):
@@ -119,8 +142,10 @@ class Updraft(Effect):
     """Air rising through the body (thermal, rotor wash off a wall): quadratic drag against a
     vertical air velocity, written as a user would; its fair library answer is a vertical wind."""
     name = "updraft"
+    ranges = {"speed": ranged(lambda v: True, "finite m/s (< 0: a downdraft)"), "c": nonnegative()}
 
     def __init__(self, speed: float = 2.0, c: float = 0.05):
+        self.check_params(speed=speed, c=c)
         self.speed, self.c = float(speed), float(c)
 
     def setup(self, sim):
@@ -137,8 +162,10 @@ class OneSidedDrag(Effect):
     """Air drag on one side of the body only (a camera or a flag on the +x half): the drag pulls
     off the centre and turns the body as it flies."""
     name = "one_sided_drag"
+    ranges = {"c": nonnegative()}   # a drag never pushes
 
     def __init__(self, c: float = 0.6):
+        self.check_params(c=c)
         self.c = float(c)
 
     def setup(self, sim):
@@ -155,8 +182,10 @@ class Crosstalk(Effect):
     """Each rotor's command leaks into the next rotor's (shared ESC wiring): T = (1 - e) T_cmd,r +
     e T_cmd,r+1."""
     name = "crosstalk"
+    ranges = {"leak": between(0, 1)}
 
     def __init__(self, leak: float = 0.2):
+        self.check_params(leak=leak)
         self.leak = float(leak)
 
     def actuate(self, thrust, sim):

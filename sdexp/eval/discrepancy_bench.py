@@ -5,10 +5,16 @@ from __future__ import annotations
 import json
 import logging
 
-from sdexp.discrepancy.bench import run_bench
+from sdexp.discrepancy.bench import check as check_bench, run_bench
 from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
+
+
+def check(run: Run) -> None:
+    """The bench's parameters against the drone and the folders, before anything is written."""
+    cfg = run.cfg
+    check_bench(run.params, run.out_dir, cfg.drone, cfg.sim, cfg.cache_dir, int(cfg.seed))
 
 
 def run(run: Run) -> dict:

@@ -85,11 +85,14 @@ def typed(cfg: DictConfig) -> Config:
 
 
 def known_names(kind: str) -> list[str]:
-    """What a param's ``names`` metadata allows: the registered controllers, or the options of
-    that config group (a drone, an experiment)."""
+    """What a param's ``names`` metadata allows: the registered controllers, the effect library,
+    or the options of that config group (a drone, an experiment)."""
     if kind == "controller":
         from sdexp.eval.controllers import CONTROLLERS   # the controllers' code: only for a run that names them
         return list(CONTROLLERS)
+    if kind == "effect":
+        from sdexp.sim.physics.effects import LIBRARY
+        return list(LIBRARY)
     return conf.names(kind)
 
 

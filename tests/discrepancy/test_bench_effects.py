@@ -56,3 +56,32 @@ def test_a_subset_of_the_bench_keeps_its_draws_and_unknown_ids_are_listed(leaf):
     assert select(scs, None) == scs
     with pytest.raises(UserError, match=r"unknown scenario\(s\) \['payload-a0'\]; this bench's are \['wind-b0'"):
         select(scs, ["payload-a0"])
+
+
+@pytest.mark.parametrize("entry, words", [
+    ({"_target_": bench_effects.PATH + "RotorTilt", "angle": 2.0}, "rotor_tilt.angle = 2.0 is out of range: allowed in [-1.5, 1.5] rad"),
+    ({"_target_": bench_effects.PATH + "PerRotorLag", "taus": [0.1, -0.05]}, "per_rotor_lag.taus = [0.1, -0.05] is out of range: allowed >= 0 s each"),
+    ({"_target_": bench_effects.PATH + "PerRotorLag", "taus": []}, "per_rotor_lag.taus = [] is out of range: allowed one or more"),
+    ({"_target_": bench_effects.PATH + "HangingMass", "mass": 0.0}, "hanging_mass.mass = 0.0 is out of range: allowed > 0 kg"),
+    ({"_target_": bench_effects.PATH + "HangingMass", "stiffness": float("nan")}, "hanging_mass.stiffness = nan is out of range: allowed > 0 N/m"),
+    ({"_target_": bench_effects.PATH + "ThrustCurve", "a": 1.5}, "thrust_curve.a = 1.5 is out of range: allowed in [0, 1]"),
+    ({"_target_": bench_effects.PATH + "BatterySag", "rate": -0.02}, "battery_sag.rate = -0.02 is out of range: allowed >= 0 1/s"),
+    ({"_target_": bench_effects.PATH + "Updraft", "speed": float("inf")}, "updraft.speed = inf is out of range: allowed finite m/s"),
+    ({"_target_": bench_effects.PATH + "OneSidedDrag", "c": -0.6}, "one_sided_drag.c = -0.6 is out of range: allowed >= 0"),
+    ({"_target_": bench_effects.PATH + "Crosstalk", "leak": "much"}, "crosstalk.leak = 'much' is out of range: allowed in [0, 1]"),
+])
+def test_an_outside_effects_parameter_out_of_range_names_the_key_and_the_range(entry, words):
+    from sdexp.errors import UserError
+    from sdexp.sim.physics.effects import build_effects
+    with pytest.raises(UserError) as info:
+        build_effects([entry])
+    assert words in str(info.value) and str(info.value).startswith("sim.effects[0] (")
+
+
+def test_a_tilted_rotor_the_drone_lacks_is_refused():
+    from types import SimpleNamespace
+
+    from sdexp.errors import UserError
+    tilt = bench_effects.RotorTilt(rotor=9)
+    with pytest.raises(UserError, match=r"rotor_tilt.rotor = 9 is out of range: allowed 0 to 3"):
+        tilt.setup(SimpleNamespace(drone=SimpleNamespace(num_rotors=4)))
