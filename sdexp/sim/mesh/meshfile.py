@@ -4,12 +4,15 @@
 mesh of tetrahedra, used as given. 2D: a closed outline, either the line cells of a mesh file,
 the boundary of a triangle mesh (re-meshed by Triangle, so ``drone.mesh.edge_length`` holds), or
 a text file of "x y" rows. Everything meshio reads is accepted; the checks say in one line what
-is wrong with a file that is not a closed body, since fTetWild would otherwise mesh it into
-something else without a word.
+is wrong with a file that is not one solid body (empty, unreadable, NaN vertices, flat, open,
+non-manifold, self-intersecting, several bodies), since fTetWild would otherwise mesh it into
+something else without a word. They run where the file is read, before anything is meshed or
+written: the run's preflight reads it (sdexp.sim.checks).
 """
 from __future__ import annotations
 
 import functools
+import logging
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,10 +23,12 @@ import numpy as np
 from sdexp.config import mesh_path, mesh_path_candidates
 from sdexp.errors import UserError, one_line
 from sdexp.sim.mesh.surface import boundary_faces, enclosed_volume
+from sdexp.sim.mesh.topology import crossing_pairs, pieces, pinched_vertices
 
 FORMATS = "STL, OBJ, PLY, OFF, VTK/VTU, Gmsh .msh (anything meshio reads)"
 TEXT_SUFFIXES = (".txt", ".csv", ".xy", ".dat")   # 2D: a closed polyline, one "x y" row per vertex
 KEY = "drone.mesh.file"
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -42,6 +47,10 @@ class Body:
 def resolve(path: str) -> Path:
     """The file ``drone.mesh.file = path`` names (sdexp.config.mesh_path says where it is looked for)."""
     found = mesh_path(path)
+    folder = next((p for p in mesh_path_candidates(path) if p.is_dir()), None)
+    if found is None and folder is not None:
+        raise UserError(f"{KEY} = {path!r} is a folder ({folder}), not a file: give the mesh file itself, "
+                        f"in {FORMATS}")
     if found is None:
         where = ", ".join(str(p.parent) for p in mesh_path_candidates(path))
         raise UserError(f"{KEY} = {path!r}: no such file (looked in {where}); give a mesh in {FORMATS}")
@@ -51,6 +60,14 @@ def resolve(path: str) -> Path:
 def read_body(path: str, dim: int, scale: float) -> Body:
     """The body of the file at ``path`` (resolved as :func:`resolve` says) times ``scale``."""
     p = resolve(path)
+    try:   # meshio reads an empty file as an IndexError, an unreadable one as whatever it meets
+        with open(p, "rb") as fh:
+            empty = not fh.read(1)
+    except OSError as err:
+        raise UserError(f"{KEY} = {p.name}: cannot read it ({err.strerror or err}): "
+                        f"make it readable ({p})") from None
+    if empty:
+        raise UserError(f"{KEY} = {p.name}: the file is empty (0 bytes): export the mesh again ({p})")
     return _read(str(p), p.stat().st_mtime_ns, int(dim), float(scale))
 
 
@@ -64,6 +81,7 @@ def _read(path: str, mtime: int, dim: int, scale: float) -> Body:
             raise UserError(f"{KEY} = {name}: cannot read it as 'x y' rows ({one_line(err)})") from None
         if len(ring) > 1 and np.allclose(ring[0], ring[-1]):
             ring = ring[:-1]
+        _finite(name, ring)
         k = np.arange(len(ring))
         return _outline(name, ring * scale, np.c_[k, (k + 1) % len(k)])
     import meshio
@@ -79,9 +97,19 @@ def _read(path: str, mtime: int, dim: int, scale: float) -> Body:
         cells.setdefault(block.type, []).append(np.asarray(block.data, dtype=np.int64))
     cells = {k: np.vstack(v) for k, v in cells.items()}
     points = np.asarray(mesh.points, dtype=np.float64) * scale
+    _finite(name, points)
     if dim == 3:
         return _body3(name, points, cells)
     return _body2(name, points, cells)
+
+
+def _finite(name: str, points: np.ndarray) -> None:
+    if len(points) == 0:
+        raise UserError(f"{KEY} = {name}: holds no vertices: export the mesh again")
+    bad = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    if len(bad):
+        raise UserError(f"{KEY} = {name}: {len(bad)} of its {len(points)} vertices are NaN or infinite "
+                        f"(vertex {bad[0]}: {points[bad[0]].tolist()}): export the mesh again")
 
 
 def _body3(name: str, points: np.ndarray, cells: dict) -> Body:
@@ -93,7 +121,9 @@ def _body3(name: str, points: np.ndarray, cells: dict) -> Body:
             pts, tets = clean_tets(points, cells["tetra"])
         except RuntimeError:
             raise UserError(f"{KEY} = {name}: its tetrahedra enclose zero volume") from None
-        return Body(3, pts, boundary_faces(tets), np.zeros((0, 3)), tets)
+        faces = boundary_faces(tets)
+        _one_piece(name, pts, faces)
+        return Body(3, pts, faces, np.zeros((0, 3)), tets)
     tris = [cells[k] for k in ("triangle",) if k in cells]
     if "quad" in cells:
         q = cells["quad"]
@@ -102,20 +132,51 @@ def _body3(name: str, points: np.ndarray, cells: dict) -> Body:
         raise UserError(f"{KEY} = {name}: holds no triangles, quads or tetrahedra (cells: "
                         f"{', '.join(cells) or 'none'}); a 3D drone needs a closed surface or a tet mesh")
     pts, faces = _merge(points, np.vstack(tris))
+    _solid(name, pts, faces)
+    if enclosed_volume(pts, faces) < 0:   # inward-facing (a CAD export's usual slip): turned outward, not refused
+        log.info(f"{KEY} = {name}: its triangles face inward (negative volume): turned outward")
+        faces = faces[:, [0, 2, 1]]
+    return Body(3, pts, faces, np.zeros((0, 3)), None)
+
+
+def _solid(name: str, pts: np.ndarray, faces: np.ndarray) -> None:
+    """A surface bounds one solid, or the first thing wrong with it, in one line. Zero volume is
+    checked first: a flat closed box has its edges in threes and fours, "not closed" would mislead."""
+    spread = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False) if len(pts) >= 3 else np.zeros(3)
+    if len(faces) == 0 or spread[-1] <= 1e-9 * spread[0]:
+        raise UserError(f"{KEY} = {name}: the surface encloses zero volume (its vertices lie in one plane): "
+                        "give the body a thickness")
     directed = np.r_[faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]
     _, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
-    if np.any(counts != 2):
+    if np.any(counts == 1):
         raise UserError(f"{KEY} = {name}: the surface is not closed ({np.sum(counts == 1)} edges border one "
-                        f"triangle, {np.sum(counts > 2)} more than two): close it, it must bound a solid")
+                        "triangle): close it, it must bound a solid")
+    if np.any(counts > 2):
+        raise UserError(f"{KEY} = {name}: the surface is non-manifold ({np.sum(counts > 2)} edges border more "
+                        "than two triangles): make each edge border exactly two, one solid without inner walls")
     if len(np.unique(directed, axis=0)) != len(directed):
         raise UserError(f"{KEY} = {name}: the surface's triangles are not consistently oriented "
                         "(an edge runs the same way in both its triangles): orient them all outward")
+    pinched = pinched_vertices(faces, len(pts))
+    if len(pinched):
+        raise UserError(f"{KEY} = {name}: the surface is non-manifold at {len(pinched)} vertices where parts "
+                        f"touch at a point (vertex {pts[pinched[0]].round(6).tolist()}): join them or pull them apart")
+    _one_piece(name, pts, faces)
     volume = enclosed_volume(pts, faces)
     if abs(volume) <= 1e-9 * np.ptp(pts, axis=0).max() ** 3:
-        raise UserError(f"{KEY} = {name}: the surface encloses zero volume")
-    if volume < 0:   # inward-facing: turn it inside out once, rather than refuse it
-        faces = faces[:, [0, 2, 1]]
-    return Body(3, pts, faces, np.zeros((0, 3)), None)
+        raise UserError(f"{KEY} = {name}: the surface encloses zero volume: give the body a thickness")
+    crossing = crossing_pairs(pts, faces)
+    if len(crossing):
+        where = pts[faces[crossing[0]]].mean(axis=(0, 1)).round(6).tolist()
+        raise UserError(f"{KEY} = {name}: the surface intersects itself ({len(crossing)} pairs of triangles "
+                        f"cross, the first near {where}): repair it (e.g. a boolean union in the CAD tool)")
+
+
+def _one_piece(name: str, pts: np.ndarray, faces: np.ndarray) -> None:
+    sizes = pieces(faces, len(pts))
+    if len(sizes) > 1:
+        raise UserError(f"{KEY} = {name}: the surface is {len(sizes)} separate bodies (of {', '.join(map(str, sizes))} "
+                        "triangles; a cavity counts as one): a drone is one solid, join them or give one")
 
 
 def _body2(name: str, points: np.ndarray, cells: dict) -> Body:
@@ -204,6 +265,9 @@ def _outline(name: str, points: np.ndarray, segments: np.ndarray) -> Body:
             d = ring[1] - ring[0]
             holes.append(0.5 * (ring[0] + ring[1]) + 1e-3 * np.array([d[1], -d[0]]))
         rings_out.append(ring)
+    if len(rings_out) - len(holes) > 1:
+        raise UserError(f"{KEY} = {name}: the outline is {len(rings_out) - len(holes)} separate bodies (closed "
+                        "loops side by side, not one inside another): a drone is one body, join them or give one")
     vertices = np.vstack(rings_out)
     start = np.cumsum([0] + [len(r) for r in rings_out])
     segs = np.vstack([np.c_[np.arange(s, e), np.r_[np.arange(s + 1, e), s]] for s, e in zip(start[:-1], start[1:])])

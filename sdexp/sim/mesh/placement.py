@@ -78,3 +78,20 @@ def tree_imus(center: np.ndarray, rotors: np.ndarray, num_sensors: int, root_rad
     theta = np.mod(np.arctan2(pts[:, 1] - c[1], pts[:, 0] - c[0]), 2 * np.pi)
     order = np.lexsort((d, np.round(theta, 9)))
     return pts[order]
+
+
+def closest_gap(center: np.ndarray, planar: np.ndarray) -> float:
+    """The least distance between planar IMU positions and the centre (the frame IMU's place)."""
+    pts = np.r_[_planar(center[None]), planar]
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    return float(d[np.triu_indices(len(pts), 1)].min())
+
+
+def most_imus(center: np.ndarray, rotors: np.ndarray, num_sensors: int, spacing: float,
+              root_radius: float = 1e-6) -> int:
+    """The most peripheral IMUs, up to ``num_sensors``, the rule places ``spacing`` or more apart
+    (and from the centre): more crowd an edge, their patches binding the same faces."""
+    for n in range(int(num_sensors), 0, -1):
+        if closest_gap(center, tree_imus(center, rotors, n, root_radius)) >= spacing:
+            return n
+    return 0

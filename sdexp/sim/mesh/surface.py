@@ -55,6 +55,21 @@ def enclosed_centroid(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return first / size
 
 
+def encloses(points: np.ndarray, faces: np.ndarray, query: np.ndarray) -> bool:
+    """``query`` lies inside the closed boundary: its winding number, the solid angle (3D) or
+    angle (2D) the faces subtend from it over the full one, is about 1 (0 outside)."""
+    corners = points[faces] - query                    # (m, dim, dim)
+    if faces.shape[1] == 2:
+        a, b = corners[:, 0], corners[:, 1]
+        turn = np.arctan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], np.einsum("ij,ij->i", a, b)).sum()
+        return bool(turn > np.pi)
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]   # Van Oosterom and Strackee's solid angle
+    la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+    den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la \
+        + np.einsum("ij,ij->i", c, a) * lb
+    return bool(2 * np.arctan2(np.einsum("ij,ij->i", a, np.cross(b, c)), den).sum() > 2 * np.pi)
+
+
 def _moments(points: np.ndarray, faces: np.ndarray) -> tuple[float, np.ndarray]:
     """Volume and first moment by the divergence theorem: a signed simplex from the origin to
     each face (a tet in 3D, a triangle in 2D), its centroid at its corners' mean."""

@@ -14,11 +14,11 @@ import numpy as np
 from sdexp.config import MAX_ELEMENTS, check_range
 from sdexp.errors import UserError
 from sdexp.sim.mesh.meshfile import read_body
-from sdexp.sim.mesh.placement import tree_imus
+from sdexp.sim.mesh.placement import closest_gap, most_imus, tree_imus
 from sdexp.sim.mesh.shape import Shape
 from sdexp.sim.mesh.shapes.shapes2d import lift as lift2
 from sdexp.sim.mesh.snap import lift3, patch_normal, snap
-from sdexp.sim.mesh.surface import enclosed_centroid
+from sdexp.sim.mesh.surface import enclosed_centroid, encloses
 
 
 def _listed(cfg, key: str, values, normals, radius: float, body) -> tuple[np.ndarray, np.ndarray]:
@@ -33,7 +33,8 @@ def _listed(cfg, key: str, values, normals, radius: float, body) -> tuple[np.nda
         if dist > radius:
             where = "no surface faces that way" if not np.isfinite(dist) else f"the nearest surface facing " \
                 f"{n.round(3).tolist()} is {dist:.3g} m away"
-            raise UserError(f"drone.{key}[{k}] = {p} is off the body of {cfg.mesh.file}: {where}; "
+            side = "inside" if encloses(body.vertices, body.faces, np.asarray(p)) else "off"
+            raise UserError(f"drone.{key}[{k}] = {p} is {side} the body of {cfg.mesh.file}: {where}; "
                             f"allowed within drone.{'imu' if key == 'imus' else 'rotor'}_radius = {radius:g} m of its surface")
         anchors.append(anchor)
         out.append(n if normals else normal)   # a listed normal is the thrust direction as given
@@ -60,6 +61,17 @@ def _lifted(body, planar: np.ndarray, what: str, cfg) -> tuple[np.ndarray, np.nd
                     f"(positions on the body) or change drone.rotors")
 
 
+def _spaced(cfg, center: np.ndarray, rotors: np.ndarray, tree: np.ndarray) -> None:
+    """The rule's IMUs at least drone.imu_radius apart (and from the frame IMU), as the paper's 3D
+    designs' are (3.8 radii or more): closer, their patches bind the same faces and read one bend."""
+    gap = closest_gap(center, tree)
+    if gap < cfg.imu_radius:
+        most = most_imus(center, rotors, int(cfg.num_sensors), cfg.imu_radius, root_radius=float(cfg.rotor_radius))
+        raise UserError(f"drone.num_sensors = {cfg.num_sensors}: the placement rule puts IMUs {gap:.3g} m apart on "
+                        f"{cfg.mesh.file}, closer than drone.imu_radius = {cfg.imu_radius:g} m; allowed at most "
+                        f"{most} on these rotors, or list them in drone.imus")
+
+
 def make_file_shape(cfg) -> Shape:
     """The Shape of a drone from a mesh file (cfg: a validated DroneConfig with drone.mesh.file)."""
     body = read_body(cfg.mesh.file, cfg.dim, cfg.mesh.scale)
@@ -78,6 +90,7 @@ def make_file_shape(cfg) -> Shape:
             tree = tree_imus(center, rotors, int(cfg.num_sensors), root_radius=float(cfg.rotor_radius))
         except ValueError as err:
             raise UserError(f"drone.num_sensors = {cfg.num_sensors}: {err}; list them in drone.imus") from None
+        _spaced(cfg, center, rotors, tree)
         imus, imu_normals = _lifted(body, tree, "peripheral IMUs", cfg)
     else:
         imus, imu_normals = np.zeros((0, cfg.dim)), np.zeros((0, cfg.dim))
@@ -108,13 +121,15 @@ def check_file_drone(d) -> tuple[list[float], int | None]:
     for key in ("rotors", "rotor_normals", "imus"):
         rows = [list(r) for r in getattr(d, key)]
         need(all(len(r) == d.dim for r in rows), f"drone.{key} = {rows}: allowed {dims} rows ({d.dim}D drone)")
+    for k, n in enumerate(d.rotor_normals):   # before the counts: a zero normal is wrong whatever their number
+        need(any(float(x) != 0 for x in n), f"drone.rotor_normals[{k}] = {list(n)} is zero: allowed a non-zero "
+             "direction (the rotor's thrust), one per rotor, or [] for +Y")
     need(len(d.rotors) >= MIN_ROTORS[d.dim], f"drone.rotors lists {len(d.rotors)}: a {d.dim}D drone needs at least "
          f"{MIN_ROTORS[d.dim]} rotors (its thrust and its tilt" + (" about two axes)" if d.dim == 3 else ")"))
     need(len(d.rotors) == d.num_rotors, f"drone.num_rotors = {d.num_rotors} but drone.rotors lists "
          f"{len(d.rotors)}: allowed {len(d.rotors)}")
     need(not d.rotor_normals or len(d.rotor_normals) == len(d.rotors), f"drone.rotor_normals lists "
          f"{len(d.rotor_normals)}: allowed [] (+Y) or one per rotor ({len(d.rotors)})")
-    need(all(any(x != 0 for x in r) for r in d.rotor_normals), "drone.rotor_normals: allowed non-zero directions")
     need(not d.imus or len(d.imus) == d.num_sensors, f"drone.imus lists {len(d.imus)}: allowed [] (the placement "
          f"rule) or one per peripheral IMU (drone.num_sensors = {d.num_sensors})")
     body = read_body(d.mesh.file, d.dim, d.mesh.scale)
