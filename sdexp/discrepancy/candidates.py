@@ -41,6 +41,7 @@ class Candidate:
     scan: list | None = None             # theta values tried first; the best is linearised about
     memory: float = 0.0                  # s of past commands a window must replay for it
     check: Callable | None = None        # (theta, option) -> why a fit is not physical, or None
+    strength: list[int] | None = None    # the theta components that say whether it is there at all (None: all)
 
     def flags(self, theta: np.ndarray, option) -> list[str]:
         """Why a fit at theta cannot be accepted: a parameter on a physical bound other than its
@@ -52,6 +53,13 @@ class Candidate:
                     out.append(f"{name} at its {side} bound {bound:g}")
         why = self.check(theta, option) if self.check else None
         return out + ([why] if why else [])
+
+
+# {candidate: its strength's fitted parameters} where not every theta is one (Candidate.strength):
+# a payload is there by its mass; its first moments say where it sits, and a fit off the centre
+# moves them off 0 however uncertain the mass (converged flower, strong gusty wind: a second
+# effect's mass profiled at 0 to 0.37 kg)
+STRENGTH = {"payload": ("mass",)}
 
 
 def candidate(entry, drone) -> Candidate | None:
@@ -82,10 +90,11 @@ def candidate(entry, drone) -> Candidate | None:
         # as far as a rollout shows: the reference is the effect at theta = 0, not the nominal
         base = lambda o: [kwargs(np.zeros(len(spec.params)), o)]  # noqa: E731
     a = lambda v: None if v is None else np.asarray(v, dtype=float)  # noqa: E731
+    strength = [list(spec.params).index(q) for q in STRENGTH[name]] if name in STRENGTH else None
     return Candidate(name, list(spec.params), a(spec.steps), a(spec.lower), a(spec.upper),
                      lambda th, o: [kwargs(th, o)], lambda th, o: report(np.asarray(th, dtype=float), o),
                      list(spec.options), base, a(spec.anchor),
-                     None if spec.scan is None else [a(t) for t in spec.scan], float(spec.memory), spec.check)
+                     None if spec.scan is None else [a(t) for t in spec.scan], float(spec.memory), spec.check, strength)
 
 
 def library_candidates(drone, entries=None) -> list[Candidate]:

@@ -24,7 +24,9 @@ not accepted). A second effect passes the same test on the residual the first le
 must also differ from nominal by more than its uncertainty (some parameter's interval excludes
 theta = 0: ``off_nominal``): held-out windows of one flight share its gusts and noise draws, so
 the windows' test alone lets an effect through whose flight bootstrap cannot tell it from
-nothing (a gusty wind's damping_scale 0.41, interval 0-1.31, on the converged flower). No pass: ``none``. The best passing candidate wins; any other
+nothing (a gusty wind's damping_scale 0.41, interval 0-1.31, on the converged flower); once the
+winner is profiled, its strength's interval must still exclude nominal (``holds_nominal``, checked
+by the workflow). No pass: ``none``. The best passing candidate wins; any other
 passing candidate whose held-out loss is not significantly worse than the winner's (paired
 test, same z) is reported as a tie.
 """
@@ -179,8 +181,7 @@ def params_interval(fit: Fit, cand: Candidate, level: float = LEVEL) -> dict:
     if fit.spread is None or not len(fit.spread):
         return {}
     q = [50.0 * (1 - level), 50.0 * (1 + level)]
-    about = [[cand.report(np.clip(c + d, cand.lower, cand.upper), fit.option) for d in fit.spread]
-             for c in [fit.theta] + fit.centres]
+    about = [[cand.report(th, fit.option) for th in draws] for draws in _draws(fit, cand)]
     kept = [cand.report(th, fit.option) for th in fit.profile]
     out = {}
     for key, value in fit.params.items():
@@ -193,6 +194,41 @@ def params_interval(fit: Fit, cand: Candidate, level: float = LEVEL) -> dict:
             low, high = np.minimum(low, r[key]), np.maximum(high, r[key])
         out[key] = [low.tolist(), high.tolist()]
     return out
+
+
+def _draws(fit: Fit, cand: Candidate) -> list[np.ndarray]:
+    """The bootstrap's thetas, (draws, p), about the fit and about each point it stood at before
+    the profile moved it (``fit.centres``), clipped to the bounds."""
+    return [np.clip(c + fit.spread, cand.lower, cand.upper) for c in [fit.theta] + fit.centres]
+
+
+def theta_interval(fit: Fit, cand: Candidate, level: float = LEVEL) -> tuple[np.ndarray, np.ndarray] | None:
+    """(low, high) per theta component: params_interval's interval before the report (the central
+    ``level`` of the bootstrap draws, widened to every point the profile kept); None without draws."""
+    if fit.spread is None or not len(fit.spread):
+        return None
+    q = [50.0 * (1 - level), 50.0 * (1 + level)]
+    ends = [np.percentile(d, q, axis=0) for d in _draws(fit, cand)]
+    low, high = np.min([e[0] for e in ends], axis=0), np.max([e[1] for e in ends], axis=0)
+    for th in fit.profile:
+        low, high = np.minimum(low, th), np.maximum(high, th)
+    return low, high
+
+
+def holds_nominal(fit: Fit, cand: Candidate, level: float = LEVEL) -> str | None:
+    """Why the fit cannot be told from nothing once profiled: every component of its strength
+    (``cand.strength``, all of theta by default) has an interval (theta_interval) holding its
+    nominal 0; None where one excludes it, or where there are no draws to judge by. Unlike
+    ``off_nominal`` (the bootstrap alone, in the test), it reads the profile, which sees where
+    the loss is flatter than the linear model says."""
+    ival = theta_interval(fit, cand, level)
+    if ival is None:
+        return None
+    strength = cand.strength if cand.strength is not None else range(len(fit.theta))
+    if any(ival[0][k] > 0 or ival[1][k] < 0 for k in strength):
+        return None
+    ends = ", ".join(f"{cand.params[k]} {ival[0][k]:.3g} to {ival[1][k]:.3g}" for k in strength)
+    return f"its strength's profiled {100 * level:.0f}% interval holds nominal ({ends})"
 
 
 def profile(fit: Fit, cand: Candidate, predictor, train, held, sigma, base_effects, level: float = LEVEL,

@@ -369,3 +369,94 @@ def test_a_vertical_wind_is_named_wind_not_a_thrust_change(tmp_path, small_cfg, 
     v = np.array(rep["effects"][0]["params"]["velocity"])
     assert v[1] > 2.0 and abs(v[1]) > 3 * np.abs(v[[0, 2]]).max()
     assert rep["effects"][0]["params"]["plane"] in ("xy", "zy")   # a plane through the up axis
+
+
+def _named_rounds(monkeypatch, winners: list, widened: dict):
+    """workflow._name over scripted rounds: round k's test passes ``winners[k]`` (None: nothing),
+    and the profile widens a fit's interval to the thetas ``widened`` gives for its name. No
+    simulator: the fits, the test and the profile are stubs."""
+    from types import SimpleNamespace
+
+    from sdexp.discrepancy import workflow as W
+    queue = list(winners)
+    monkeypatch.setattr(W, "linear_fit", lambda *a: None)
+    monkeypatch.setattr(W, "polish", lambda *a, **k: None)
+    monkeypatch.setattr(W, "_confusable", lambda *a: [])
+    monkeypatch.setattr(W, "profile", lambda f, *a: setattr(f, "profile", [np.array(t) for t in widened.get(f.name, [])]))
+
+    def test(ctx, fits, remaining, *a):
+        best = queue.pop(0)
+        return ("effect" if best else "none"), best, [], [], 3.0, [best] if best else []
+    monkeypatch.setattr(W, "_screen_and_test", test)
+    logged = []
+    ctx = SimpleNamespace(dcfg=SimpleNamespace(max_effects=3, second_effect_ratio=1.5), pred=None, train=None,
+                          held=None, sigma=np.ones((2, 3)), log=logged.append, laps=SimpleNamespace(lap=lambda *a: None),
+                          cands=list(CANDS.values()), rng=None, shortfall=None, drone=None, sim_cfg=None,
+                          noise_cfg=None, seed=0, left_over=lambda *a: True)
+    r = np.ones((4, 2, 3))
+    return W._name(ctx, r, r, np.full(4, 20.0), np.ones(4)), logged
+
+
+def _stub_fit(name, theta, se):
+    """A fit at ``theta`` whose bootstrap draws spread by ``se`` (200 draws), held-out loss 5."""
+    from sdexp.discrepancy.fit import Fit
+    spread = np.random.default_rng(0).normal(0.0, se, (200, len(theta)))
+    f = Fit(name, None, np.array(theta, float), np.full(len(theta), se), {"strength": theta[0]}, [{"name": name}],
+            0.0, refined=True, spread=spread)
+    f.held_w = np.full(4, 5.0)
+    f.evidence = {"held_residual": np.ones((4, 2, 3)), "train_residual": np.ones((4, 2, 3))}
+    return f
+
+
+def _stub_candidate(name, params, strength=None):
+    from sdexp.discrepancy.candidates import Candidate
+    k = len(params)
+    return Candidate(name, params, np.ones(k), np.full(k, -2.0) if name != "payload" else np.r_[0.0, -2.0],
+                     np.full(k, 2.0), lambda th, o: [], lambda th, o: {}, strength=strength)
+
+
+CANDS = {"wind": _stub_candidate("wind", ["w"]), "payload": _stub_candidate("payload", ["mass", "mass_x"], [0])}
+
+
+def test_a_further_effect_whose_profiled_strength_holds_nominal_is_refused(monkeypatch):
+    """Converged flower, strong gusty wind: behind the wind flown at its mean a payload of 0.21 kg
+    passed round 2's test (bootstrap standard error 0.03 kg), and its profile widened the mass to
+    0-0.37: not added, and the report says why. Its first moment's interval, off nominal, does not
+    count (the payload's strength is its mass). The first effect is the held-out test's alone."""
+    wind, payload = _stub_fit("wind", [1.0], 0.1), _stub_fit("payload", [0.21, 0.3], 0.03)
+    named, logged = _named_rounds(monkeypatch, [wind, payload], {"wind": [[-0.5]], "payload": [[0.0, 0.3], [0.37, 0.3]]})
+    assert named.accepted == [wind] and named.base == [{"name": "wind"}]
+    refused = named.rounds[1]["refused"]
+    assert refused["candidate"] == "payload" and "mass 0 to 0.37" in refused["because"]
+    assert "interval holds nominal" in refused["because"] and any("payload refused" in m for m in logged)
+
+    # the same payload profiled within 0.15-0.27 kg is evidence: added, and the rounds go on
+    wind, payload = _stub_fit("wind", [1.0], 0.1), _stub_fit("payload", [0.21, 0.3], 0.03)
+    named, _ = _named_rounds(monkeypatch, [wind, payload, None], {})
+    assert named.accepted == [wind, payload] and "refused" not in named.rounds[1]
+
+
+def test_a_payloads_strength_is_its_mass_and_every_other_candidates_all_of_theta():
+    from types import SimpleNamespace
+
+    from sdexp.discrepancy.candidates import candidate
+    rest = np.random.default_rng(0).normal(size=(50, 3))
+    drone = SimpleNamespace(fem=SimpleNamespace(rest=rest, mass=np.ones(50)), dim=3, num_rotors=4)
+    payload = candidate("payload", drone)
+    assert [payload.params[k] for k in payload.strength] == ["mass"]
+    assert candidate("wind", drone).strength is None
+
+
+def test_holds_nominal_reads_every_strength_component_and_the_profile():
+    """A vector strength (an IMU tilt) is evidence where one component's interval excludes 0;
+    the profile's points widen the bootstrap's interval; no draws, no judgement."""
+    from sdexp.discrepancy.fit import Fit, holds_nominal
+    tilt = _stub_candidate("imu_bias", ["tilt_x", "tilt_z"])
+    assert holds_nominal(_stub_fit("imu_bias", [0.0, 0.03], 0.002), tilt) is None
+    fit = _stub_fit("imu_bias", [0.001, 0.002], 0.002)
+    assert "tilt_x" in holds_nominal(fit, tilt) and "tilt_z" in holds_nominal(fit, tilt)
+    fit = _stub_fit("imu_bias", [0.02, 0.02], 0.002)
+    assert holds_nominal(fit, tilt) is None
+    fit.profile = [np.array([0.0, 0.02]), np.array([0.02, -0.001])]
+    assert "tilt_x 0 to" in holds_nominal(fit, tilt)
+    assert holds_nominal(Fit("x", None, np.zeros(1), np.zeros(1), {}, [], 0.0), tilt) is None
