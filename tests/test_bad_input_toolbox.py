@@ -146,3 +146,32 @@ def test_a_bad_mesh_drone_on_the_command_line_is_one_line_and_leaves_no_run_fold
     (tmp_path / "empty.stl").write_bytes(b"")
     assert_one_line_error(sdexp(*args, cwd=tmp_path), *words)
     assert [p.name for p in tmp_path.iterdir()] == ["empty.stl"]
+
+
+# ------------------------------------------------------------------ a bad action to an environment
+
+@pytest.fixture(scope="module")
+def rod_env(cache_dir):
+    from tests.envs.test_envs import make
+    env = make("sdexp/Rod-Hover-v0", cache_dir)
+    env.reset(seed=0)
+    return env
+
+
+@pytest.mark.parametrize("action, words", [
+    (np.zeros(3), "action array([0., 0., 0.]) (ndarray, shape (3,), dtype float64)"),
+    (2.5, "action 2.5 (float, shape (), dtype float64)"),
+    ("up", "action 'up' (str, shape (), dtype <U2)"),
+    ([1.0, [2.0, 3.0], 4.0, 5.0, 6.0], "(list of ragged rows)"),
+    (None, "action None (NoneType, shape (), dtype object)"),
+])
+def test_a_bad_action_names_itself_and_the_space(action, words, rod_env):
+    from sdexp.envs.env import BadAction
+    env = rod_env
+    with pytest.raises(BadAction) as info:
+        env.step(action)
+    message = str(info.value)
+    assert isinstance(info.value, ValueError) and len(message.splitlines()) == 1, message
+    assert words in message and "is not in the action space Box(-10.0, 10.0, (5,), float32)" in message, message
+    assert "expected 5 rotor thrusts (N), a float array of shape (5,)" in message, message
+    env.step(np.zeros((1, 5)))   # a batch of one is taken, as before

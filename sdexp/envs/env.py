@@ -8,6 +8,8 @@ and ours (``sdexp.envs.policy.OursPolicy``) are compared on equal terms:
                noise), and the task's goal state at the same time; never mesh internals;
   action       rotor thrusts, Box[-Tmax, Tmax]^m; the simulator applies them after the configured
                output delay and rotor noise (noise: paper by default, ``noise.enabled=false`` off);
+               one of another size, or not numbers, raises ``BadAction`` (a ValueError) naming it
+               and the space;
   reward       exp(-c) in (0, 1] per control step, c = |p - p_goal|^2 / POSITION_SCALE^2 +
                |e - e_goal|^2 / ANGLE_SCALE^2 + |s - s_goal|^2 / ANGLE_SCALE^2 (noise-free state,
                angles wrapped): bounded and positive, so ending a flight early never pays;
@@ -22,12 +24,20 @@ generator (one seeded reset fixes all that follow).
 """
 from __future__ import annotations
 
+import reprlib
+
 import gymnasium as gym
 import numpy as np
 
 from sdexp.control.rollout import LossOfControl
 from sdexp.control.tasks import Task, wrap_angle
+from sdexp.errors import UserError
 from sdexp.sensing import decompose
+
+class BadAction(UserError, ValueError):
+    """An action that is not in the env's action space: a ValueError, as Gymnasium's own checks
+    raise, and a UserError, one line for sdexp's command line (sdexp.envs.bench)."""
+
 
 POSITION_SCALE = 1.0    # m: an error of 1 m costs a factor e in the step's reward
 ANGLE_SCALE = 0.5       # rad (29 deg), for the attitude and the bend angles alike
@@ -84,7 +94,7 @@ class SoftDroneEnv(gym.Env):
         return self._observe(readings), self._info(None)
 
     def step(self, action):
-        u = np.asarray(action, dtype=float).reshape(self.action_space.shape)
+        u = self._thrusts(action)
         failure = None
         if not np.all(np.isfinite(u)):
             failure = "controller: non-finite command"
@@ -104,6 +114,21 @@ class SoftDroneEnv(gym.Env):
         return obs, reward, failure is not None, truncated, self._info(failure, state.x)
 
     # -------------------------------------------------------------------------------- helpers
+    def _thrusts(self, action) -> np.ndarray:
+        """The action as the rotors' thrusts; one that is not numbers of the space's size is a
+        BadAction naming it and the space (numpy's own error names neither). Any shape of that
+        size is taken ((1, m) from a batch of one); a non-finite number ends the episode."""
+        try:
+            u = np.asarray(action)
+            what = f"{type(action).__name__}, shape {u.shape}, dtype {u.dtype}"
+        except ValueError:   # a ragged list
+            u, what = None, f"{type(action).__name__} of ragged rows"
+        shape = self.action_space.shape
+        if u is None or u.dtype.kind not in "iuf" or u.size != int(np.prod(shape)):
+            raise BadAction(f"action {reprlib.repr(action)} ({what}) is not in the action space {self.action_space}: "
+                            f"expected {shape[0]} rotor thrusts (N), a float array of shape {shape}")
+        return u.astype(float).reshape(shape)
+
     @property
     def t(self) -> float:
         return self.sim.t
