@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from sdexp import conf
 from sdexp.config import unknown_key_error
-from sdexp.errors import EXIT_USER_ERROR, UserError, one_line
+from sdexp.errors import EXIT_USER_ERROR, UserError, did_you_mean, one_line
 
 
 _started = False   # the task function was entered: errors after this are the run's, not Hydra's
@@ -114,7 +114,8 @@ def describe(err: BaseException, args: list[str]) -> str:
     """Hydra's and OmegaConf's composition errors as one line naming the key and what is allowed."""
     if isinstance(err, MissingConfigException) and err.missing_cfg_file and err.options:
         group, _, name = err.missing_cfg_file.rpartition("/")
-        return f"{group}={name} is unknown: choose one of {', '.join(err.options)}"
+        hint = did_you_mean(name, err.options, f"{group}=")
+        return f"{group}={name} is unknown{hint}: choose one of {', '.join(err.options)}"
     if isinstance(err, OverrideParseException):
         bad = _failing_override(args)
         return f"cannot parse the override {bad!r}: {one_line(err)}" if bad else one_line(err)
@@ -148,8 +149,6 @@ def _unknown_param(key: str, args: list[str]) -> str:
 def _unknown_hydra_key(key: str, args: list[str]) -> str:
     """A misspelled hydra.* key (hydra.launcher.njobs): the keys of its parent as composed with the
     command's own hydra/... choices (the launcher picked), not sdexp's schema, which has no hydra."""
-    import difflib
-
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
     parent, _, name = key.rpartition(".")
@@ -163,8 +162,7 @@ def _unknown_hydra_key(key: str, args: list[str]) -> str:
     if not isinstance(node, DictConfig):
         return f"{key} is not a config key"
     names = sorted(str(k) for k in node.keys())
-    close = difflib.get_close_matches(name, names, n=1)
-    hint = f" (did you mean {parent}.{close[0]}?)" if close else ""
+    hint = did_you_mean(name, names, f"{parent}.")
     what = f" ({', '.join(choices)})" if choices else ""
     if parent == "hydra.launcher" and not any(c.startswith("hydra/launcher=") for c in choices):
         what = " (the basic launcher, which has no settings: choose hydra/launcher=joblib, submitit_local or submitit_slurm)"

@@ -17,6 +17,13 @@ class UserError(Exception):
     """Bad input (config value, file, column): the message names it and the allowed range."""
 
 
+def did_you_mean(name: str, choices, prefix: str = "") -> str:
+    """" (did you mean <prefix><closest>?)" for a misspelled ``name`` among ``choices``, else ""."""
+    import difflib
+    close = difflib.get_close_matches(str(name), [str(c) for c in choices], n=1)
+    return f" (did you mean {prefix}{close[0]}?)" if close else ""
+
+
 def one_line(err: BaseException) -> str:
     """An exception and its causes as one line, without the hints that mislead (Hydra's
     "To append to your config use +key=..." turns a typo into a silent new key)."""

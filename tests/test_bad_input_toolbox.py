@@ -175,3 +175,24 @@ def test_a_bad_action_names_itself_and_the_space(action, words, rod_env):
     assert words in message and "is not in the action space Box(-10.0, 10.0, (5,), float32)" in message, message
     assert "expected 5 rotor thrusts (N), a float array of shape (5,)" in message, message
     env.step(np.zeros((1, 5)))   # a batch of one is taken, as before
+
+
+# ------------------------------------------------------------------ "did you mean" for a misspelled choice
+
+@pytest.mark.parametrize("overrides, words", [
+    (["drone=flwer"], "drone=flwer is unknown (did you mean drone=flower?): choose one of bunny, custom"),
+    (["experiment=galery"], "experiment=galery is unknown (did you mean experiment=gallery?)"),
+    (["noise=paperr"], "noise=paperr is unknown (did you mean noise=paper?): choose one of none, paper"),
+    (["experiment=gallery", "experiment.params.drones=[flower,octopuss]"],
+     "drone 'octopuss' is unknown (did you mean octopus?)"),
+    (["experiment.params.controllers=[ours,rigid_lqx]"], "controller 'rigid_lqx' is unknown (did you mean rigid_lqr?)"),
+    (["drone=zzz"], "drone=zzz is unknown: choose one of"),   # nothing close: no guess
+])
+def test_a_misspelled_choice_says_what_was_meant(overrides, words):
+    message = rejected(*overrides)
+    assert words in message, message
+
+
+def test_a_misspelled_drone_on_the_command_line_says_what_was_meant(tmp_path):
+    assert_one_line_error(sdexp("drone=flwer", cwd=tmp_path), "drone=flwer is unknown (did you mean drone=flower?)")
+    assert list(tmp_path.iterdir()) == []

@@ -30,7 +30,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from sdexp import conf
 from sdexp.cache import atomic_write
 from sdexp.config import Config, validate
-from sdexp.errors import UserError, disk_full, one_line
+from sdexp.errors import UserError, did_you_mean, disk_full, one_line
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +126,8 @@ def check_names(cfg: DictConfig) -> None:
         known = known_names(kind)
         for v in (value if isinstance(value, ListConfig) else [value]):
             if v not in known:
-                raise UserError(f"experiment.params.{f.name}: {kind} {v!r} is unknown: choose from {', '.join(known)}")
+                raise UserError(f"experiment.params.{f.name}: {kind} {v!r} is unknown{did_you_mean(v, known)}: "
+                                f"choose from {', '.join(known)}")
 
 
 # experiments that run a list of drones (experiment.params.drones): only the one named drone=<name>
