@@ -196,3 +196,33 @@ def test_a_misspelled_choice_says_what_was_meant(overrides, words):
 def test_a_misspelled_drone_on_the_command_line_says_what_was_meant(tmp_path):
     assert_one_line_error(sdexp("drone=flwer", cwd=tmp_path), "drone=flwer is unknown (did you mean drone=flower?)")
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ documented commands do what they say
+
+def test_the_custom_drone_configs_command_draws_the_custom_drone(tmp_path, monkeypatch):
+    """conf/drone/custom.yaml's comment, run as far as the gallery's choice of drones (meshing the
+    body would take fTetWild's time): it draws the file's drone, not the paper's twelve; without
+    experiment.params.drones it stops before anything is written, naming the fix."""
+    import shlex
+    from importlib.resources import files
+
+    from sdexp.eval.gallery import drawn
+    from sdexp.eval.run import check_overrides_reach, preflight, typed
+    from tests.conftest import make_cfg
+    comment = (files("sdexp.conf") / "drone" / "custom.yaml").read_text().splitlines()
+    args = shlex.split(next(line for line in comment if "sdexp experiment=" in line).split("sdexp", 1)[1])
+    assert "experiment=gallery" in args and "drone=custom" in args
+    v, f = box(3.0, 0.2, 3.0)   # body.stl: a plate the command's rotors sit on
+    _stl(tmp_path, "body.stl", v, f)
+    monkeypatch.chdir(tmp_path)
+    cfg = make_cfg(*args)
+    preflight(cfg)
+    config = typed(cfg)
+    check_overrides_reach(config, args)
+    assert drawn(config.experiment.params) == ["custom"]
+    without = [a for a in args if not a.startswith("experiment.params.drones")]
+    with pytest.raises(UserError, match=r"drone=custom is not among the drones gallery runs .*"
+                                        r"add experiment.params.drones=\[custom\]"):
+        check_overrides_reach(typed(make_cfg(*without)), without)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["body.stl"]   # nothing written

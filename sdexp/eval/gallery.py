@@ -10,13 +10,20 @@ from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.mesh.surface import face_normals
 
 
+def drawn(params) -> list[str]:
+    """The drones the gallery draws: ``experiment.params.drones``, null (or []) the paper's twelve.
+    A drone of one's own is drawn when listed (``experiment.params.drones=[custom]``); the run's
+    preflight refuses it named by ``drone=`` alone (sdexp.eval.run.check_overrides_reach)."""
+    return list(params.drones or drone_names())
+
+
 def run(run: Run) -> dict:
     from sdexp.figures import pyplot
     plt = pyplot()
     from sdexp.log import Phase
 
     cfg = run.cfg
-    names = list(run.params.drones or drone_names())
+    names = drawn(run.params)
     cols = 4
     rows = int(np.ceil(len(names) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.6 * rows), squeeze=False)

@@ -136,12 +136,16 @@ MULTI_DRONE = ("bench_sim", "fleet", "gallery")
 
 
 def check_overrides_reach(cfg: Config, overrides: list[str] | None) -> None:
-    """A drone.* override that no drone of the run would see is an error, not a silent no-op."""
+    """A drone.* override that no drone of the run would see is an error, not a silent no-op; so
+    is a drone of one's own chosen by drone= alone, where the run draws the paper's twelve."""
     name = cfg.experiment.name
     if not overrides or name not in MULTI_DRONE:
         return
     touched = [o for o in overrides if o.lstrip("+~").startswith("drone.")]
     drones = getattr(cfg.experiment.params, "drones", None)
+    if drones is None and cfg.drone.name not in conf.paper_drones():   # null: the twelve, never one's own
+        raise UserError(f"drone={cfg.drone.name} is not among the drones {name} runs (experiment.params.drones = "
+                        f"null: the paper's twelve): add experiment.params.drones=[{cfg.drone.name}] to run it")
     if touched and drones is not None and cfg.drone.name not in drones:
         raise UserError(f"{touched[0]} changes drone {cfg.drone.name}, which {name} does not run "
                         f"(experiment.params.drones = {list(drones)}; the others are loaded from "
