@@ -85,14 +85,12 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
     # its last reports down with it (CI counted 3 of 4 tasks, twice, on a loaded machine)
     q = ctx.SimpleQueue()
     drain = progress or (lambda n: None)
-    saved = {k: os.environ.get(k) for k in ONE_THREAD_ENV}
-    os.environ.update(ONE_THREAD_ENV)
     try:
         with ProcessPoolExecutor(min(workers, len(todo)) or 1, mp_context=ctx, initializer=_init,
                                  initargs=(q, os.getpid())) as pool:
-            futures = {i: pool.submit(_call, fn, tasks[i]) for i in todo}  # children start here
+            with one_thread_children():
+                futures = {i: pool.submit(_call, fn, tasks[i]) for i in todo}  # children start here
             processes = list(getattr(pool, "_processes", {}).values())   # for their exit codes
-            _restore(saved)
             try:
                 while not all(f.done() for f in futures.values()):
                     _drain(q, drain, wait=0.2)
@@ -114,9 +112,20 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
                     f.cancel()
                 raise
     finally:
-        _restore(saved)
         # what the workers reported before the pool ended, broken or not
         _drain(q, drain)
+
+
+@contextlib.contextmanager
+def one_thread_children():
+    """Processes started within start with one thread each: they read their thread counts
+    (ONE_THREAD_ENV) from the environment they start with, set here for the duration."""
+    saved = {k: os.environ.get(k) for k in ONE_THREAD_ENV}
+    os.environ.update(ONE_THREAD_ENV)
+    try:
+        yield
+    finally:
+        _restore(saved)
 
 
 def _drain(q, drain: Callable, wait: float = 0.0) -> None:

@@ -172,8 +172,8 @@ def test_a_bad_action_names_itself_and_the_space(action, words, rod_env):
         env.step(action)
     message = str(info.value)
     assert isinstance(info.value, ValueError) and len(message.splitlines()) == 1, message
-    assert words in message and "is not in the action space Box(-10.0, 10.0, (5,), float32)" in message, message
-    assert "expected 5 rotor thrusts (N), a float array of shape (5,)" in message, message
+    assert words in message and "is not in the action space Box(-1.0, 1.0, (5,), float32)" in message, message
+    assert "expected 5 rotor thrusts as fractions of Tmax = 10 N, a float array of shape (5,)" in message, message
     env.step(np.zeros((1, 5)))   # a batch of one is taken, as before
 
 

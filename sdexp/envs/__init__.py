@@ -4,6 +4,7 @@ sdexp.envs.tasks (``sdexp/Rod-Hover-v0``, ``sdexp/Flower-Reach-v0``, ...)::
 
     import gymnasium, sdexp.envs
     env = gymnasium.make("sdexp/Rod-Reach-v0", seconds=5, overrides={"noise.enabled": False})
+    envs = sdexp.envs.make_vec("sdexp/Rod-Reach-v0")     # one env per core, each in its process
 
 The environment is sdexp.envs.env.SoftDroneEnv; ours (Algorithm 1) acts in it as
 sdexp.envs.policy.OursPolicy."""
@@ -13,6 +14,7 @@ import gymnasium as gym
 
 from sdexp import conf
 from sdexp.envs.tasks import TASKS
+from sdexp.envs.vector import make_vec  # noqa: F401 - the API: sdexp.envs.make_vec
 
 NAMESPACE = "sdexp"
 VERSION = 0

@@ -1,5 +1,5 @@
 """Environment steps per second on one core (one env, one simulator thread) and on two (two envs
-in two processes, gymnasium's AsyncVectorEnv), random thrusts, episodes restarted as they end.
+in two processes, sdexp.envs.make_vec), random thrusts, episodes restarted as they end.
 
     python -m sdexp.envs.bench                      # rod, engine and flower hover, 2000 steps each
     python -m sdexp.envs.bench --drones rod --steps 500
@@ -17,13 +17,11 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-def _overrides(extra) -> list[str]:
-    return ["sim.threads=1", *extra]   # one core per env: a second simulator thread would take the other
-
-
 def one_core(env_id: str, steps: int, overrides=(), seed: int = 0) -> float:
     import gymnasium as gym
-    env = gym.make(env_id, overrides=_overrides(overrides))
+
+    from sdexp.envs.vector import one_thread
+    env = gym.make(env_id, overrides=one_thread(overrides))   # a second simulator thread would take the other core
     env.reset(seed=seed)
     env.action_space.seed(seed)
     t0 = time.perf_counter()
@@ -38,8 +36,8 @@ def one_core(env_id: str, steps: int, overrides=(), seed: int = 0) -> float:
 
 def two_cores(env_id: str, steps: int, overrides=(), seed: int = 0) -> float:
     """Steps of both envs together per second (``steps`` each)."""
-    import gymnasium as gym
-    envs = gym.make_vec(env_id, num_envs=2, vectorization_mode="async", overrides=_overrides(overrides))
+    from sdexp.envs.vector import make_vec
+    envs = make_vec(env_id, 2, overrides=overrides)
     envs.reset(seed=seed)
     envs.action_space.seed(seed)
     t0 = time.perf_counter()

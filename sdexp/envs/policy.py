@@ -4,9 +4,10 @@ observations alone, so that an agent and the paper's controller are compared on 
 It is identified from the env's config as every sdexp experiment identifies it (training data,
 d, g, h: sdexp.model.identification, cached) and configured by its ``control`` group. Each step
 it reads the decomposed state and the goal from the observation (never the simulator) and
-returns the thrusts. ``predict`` has Stable-Baselines3's signature, so
-``stable_baselines3.common.evaluation.evaluate_policy(OursPolicy(env), env)`` evaluates it like
-an agent; a vectorised env gets one controller per sub-env.
+returns the thrusts in the env's action space (fractions of Tmax by default). ``predict`` has
+Stable-Baselines3's signature, so
+``stable_baselines3.common.evaluation.evaluate_policy(OursPolicy(env), env)`` evaluates it like an
+agent; a vectorised env gets one controller per sub-env.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ class OursPolicy:
 
         base = getattr(env, "unwrapped", env)
         self.cfg, self.slices, self.n = base.cfg, base.slices, base.n
-        self.dt, self.max_thrust = base.dt, base.max_thrust
+        self.dt, self.max_thrust, self.action_scale = base.dt, base.max_thrust, base.action_scale
         _, _, self.dyn = identify(self.cfg, progress)
         self._controllers: list = []
 
@@ -67,7 +68,7 @@ class OursPolicy:
         c.steps = 0
 
     def act(self, obs, index: int = 0) -> np.ndarray:
-        """The thrusts for one observation (of sub-env ``index``)."""
+        """The action for one observation (of sub-env ``index``): the thrusts / action_scale."""
         if len(self._controllers) <= index:
             self._restart(index)
         c = self._controllers[index]
@@ -80,7 +81,7 @@ class OursPolicy:
             # episode ends with a controller failure (the env terminates on a non-finite action)
             u = np.full(len(c.u), np.nan)
         c.steps += 1
-        return np.clip(u, -self.max_thrust, self.max_thrust).astype(np.float32)
+        return (np.clip(u, -self.max_thrust, self.max_thrust) / self.action_scale).astype(np.float32)
 
     def __call__(self, obs) -> np.ndarray:
         return self.act(obs)

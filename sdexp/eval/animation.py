@@ -10,7 +10,8 @@ A flight records the simulator's vertex positions (the FEM nodes) every few cont
   into an MP4 (H.264 through imageio-ffmpeg, which ships its own ffmpeg) or, where ffmpeg is
   not available, a GIF. The axes are fixed: they cover the whole flight (and the obstacles
   within reach) when it stays within a few body sizes, otherwise a window of fixed size follows
-  the drone.
+  the drone. ``Painter`` draws one frame of it; ``LivePicture`` draws the drone one state at a
+  time as it flies (the Gymnasium environments' ``render()``).
 * ``write_vtu_series`` writes one ``.vtu`` per frame (the FEM elements, meshio) and a ``.pvd``
   collection with their times, which ParaView opens as one time series.
 
@@ -35,6 +36,8 @@ FRAME_RATE = 25.0            # frames per simulated second, recorded and played
 SIZE = (640, 480)            # pixels (multiples of 16: H.264 takes them as they are)
 DPI = 100
 FOLLOW_FACTOR = 4.0          # a flight spanning more than this x the body's size: the view follows it
+LIVE_DEFORMATION = 0.02      # the colour scale of live pictures (LivePicture): 0 to this fraction of the body's size
+DEFORMATION_LABEL = "distance from the rigid motion (cm)"
 
 # VTK cell types by nodes per element (meshio's names; the simulator keeps VTK's node order)
 _CELL_TYPES = {2: "line", 3: "triangle", 4: "tetra", 6: "triangle6", 10: "tetra10"}
@@ -289,7 +292,6 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
     obstacles: boxes (``sim.obstacles`` entries, or (min, max) pairs); view: auto | cover |
     follow; fps: playback frames per second (default: the recording's, so it plays in real time).
     """
-    import matplotlib
     from sdexp.log import Phase
 
     path = Path(path)
@@ -304,27 +306,62 @@ def write_animation(path, frames, times, faces, *, rest=None, weights=None, obst
     if fps is None:
         fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else FRAME_RATE
     face_values, label, norm = _colour(frames, rest, weights, faces, color)
-    cmap = matplotlib.colormaps["viridis"]
-    boxes = _boxes(obstacles)
-    scope = _View(frames, rest, view)
-
-    fig, canvas, draw, clock, background = _figure(dim, faces, boxes, scope, cmap, norm, label, title, size)
+    painter = Painter(dim, faces, _View(frames, rest, view), norm, label, _boxes(obstacles), title, size)
     sink = _Sink(path, fps)
     try:
         phase = Phase(f"animation {path.name}", len(frames), "frames", enabled=progress)
         for i in phase.iterate(range(len(frames))):
-            canvas.restore_region(background)
-            shift = scope.offset(frames[i])
-            draw.frame(frames[i] - shift, cmap(norm(face_values[i])), shift)
-            where = "" if scope.mode == "cover" else \
-                "   centre (" + ", ".join(f"{v:.2f}" for v in shift) + ") m"
-            clock.set_text(f"t = {times[i]:6.2f} s{where}")
-            fig.draw_artist(clock)
-            sink.add(np.asarray(canvas.buffer_rgba())[..., :3])
+            sink.add(painter.paint(frames[i], face_values[i], times[i]))
     except BaseException:
         sink.close(complete=False)
         raise
     return sink.close()
+
+
+class Painter:
+    """Pictures of the drone one frame at a time (write_animation's, an environment's render()):
+    the figure with everything but the drone and the clock drawn once, each frame blitted on it."""
+
+    def __init__(self, dim: int, faces, scope: _View, norm, label: str, boxes=(), title: str = "",
+                 size: tuple[int, int] = SIZE):
+        import matplotlib
+        self.cmap, self.norm, self.scope = matplotlib.colormaps["viridis"], norm, scope
+        self.fig, self.canvas, self.draw, self.clock, self.background = _figure(
+            dim, faces, list(boxes), scope, self.cmap, norm, label, title, size)
+
+    def paint(self, pts: np.ndarray, face_values: np.ndarray, t: float) -> np.ndarray:
+        """The drone at node positions ``pts`` (nv, dim), its faces coloured by ``face_values``,
+        at time ``t``: a new (H, W, 3) uint8 image."""
+        self.canvas.restore_region(self.background)
+        shift = self.scope.offset(pts)
+        self.draw.frame(pts - shift, self.cmap(self.norm(face_values)), shift)
+        where = "" if self.scope.mode == "cover" else "   centre (" + ", ".join(f"{v:.2f}" for v in shift) + ") m"
+        self.clock.set_text(f"t = {t:6.2f} s{where}")
+        self.fig.draw_artist(self.clock)
+        return np.array(np.asarray(self.canvas.buffer_rgba())[..., :3])
+
+
+class LivePicture:
+    """Pictures of a drone as it flies, one state at a time, for a loop that does not know its
+    frames in advance (sdexp.envs' render()): the view follows the drone (a window of fixed size
+    about it, its centre printed), the colour is each point's distance from the body's rigid
+    motion on a fixed scale (0 to LIVE_DEFORMATION of its size: the colours of one episode and the
+    next compare)."""
+
+    def __init__(self, drone, title: str = "", size: tuple[int, int] = SIZE):
+        import matplotlib
+        fem = drone.fem
+        self.rest, self.weights, self.faces = fem.rest, fem.mass, np.asarray(drone.boundary)
+        body = float(np.ptp(self.rest, axis=0).max())
+        norm = matplotlib.colors.Normalize(0.0, 100.0 * LIVE_DEFORMATION * body)
+        self.painter = Painter(self.rest.shape[1], self.faces, _View(self.rest[None], self.rest, "follow"),
+                               norm, DEFORMATION_LABEL, title=title, size=size)
+
+    def __call__(self, pts: np.ndarray, t: float) -> np.ndarray:
+        """The (H, W, 3) uint8 picture of the drone at node positions ``pts`` at time ``t``."""
+        values = 100.0 * deformation(pts[None], self.rest, self.weights)[0]      # cm
+        return self.painter.paint(pts, values[self.faces].mean(axis=1), t)
+
 
 
 def _colour(frames, rest, weights, faces, color: str):
@@ -332,7 +369,7 @@ def _colour(frames, rest, weights, faces, color: str):
     import matplotlib
     if color == "deformation":
         values = 100.0 * deformation(frames, rest, weights)      # cm
-        label = "distance from the rigid motion (cm)"
+        label = DEFORMATION_LABEL
     elif color == "height":
         values = frames[..., 1]
         label = "height y (m)"
