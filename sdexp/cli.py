@@ -2,7 +2,9 @@
 
 Every user error, whichever layer finds it (Hydra composing the config, sdexp's checks, an
 output folder that cannot be written), prints one line ``sdexp: error: ...`` and exits with
-:data:`sdexp.errors.EXIT_USER_ERROR`; only a bug prints a traceback (exit 1).
+:data:`sdexp.errors.EXIT_USER_ERROR`; only a bug prints a traceback (exit 1). Ctrl-C or SIGTERM
+stops a run where it is (its worker processes ended, its lock released, what it finished kept:
+the same command resumes it) with one line, exit 130.
 """
 from __future__ import annotations
 
@@ -24,7 +26,18 @@ from sdexp.errors import EXIT_USER_ERROR, UserError, did_you_mean, one_line
 
 
 _started = False   # the task function was entered: errors after this are the run's, not Hydra's
+_interrupted: Path | None = None   # the run folder of a run Ctrl-C or SIGTERM stopped
+EXIT_INTERRUPTED = 130   # 128 + SIGINT, as a shell reports a command Ctrl-C stopped
 log = logging.getLogger("sdexp.cli")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the run is, so that it stops as Ctrl-C stops it (its cleanup runs:
+    workers ended, lock released) instead of dying on the spot."""
+
+
+def _terminate(signum, frame) -> None:
+    raise Terminated()
 
 
 @hydra.main(version_base="1.3", config_path=conf.SEARCH_PATH, config_name="config")
@@ -44,6 +57,12 @@ def _main(cfg: DictConfig) -> None:
             from sdexp.log import to_log_files
             to_log_files(f"sdexp: error: {err}")
         fail(str(err))
+    except KeyboardInterrupt as err:
+        global _interrupted
+        _interrupted = out_dir
+        from sdexp.log import to_log_files
+        to_log_files(f"sdexp: {_interruption(err)}", logging.WARNING)
+        raise
     from sdexp.eval.run import summary
     log.info(f"sdexp: {cfg.experiment.name} done -> {out_dir}\n{summary(cfg, metrics)}")
 
@@ -89,6 +108,13 @@ def _discard_if_empty(out_dir: Path) -> None:
             folder.rmdir()   # only succeeds on an empty folder: outputs/<experiment>/<drone>/
     except OSError:
         pass
+
+
+def _interruption(err: KeyboardInterrupt) -> str:
+    how = "SIGTERM" if isinstance(err, Terminated) else "Ctrl-C"
+    where = "" if _interrupted is None else \
+        f": {_interrupted} keeps what the run finished, and the same command resumes it"
+    return f"interrupted ({how}){where}"
 
 
 def fail(message: str) -> None:
@@ -183,14 +209,21 @@ def _list_index(err: ValueError, args: list[str]) -> str:
 
 def main() -> None:
     """The ``sdexp`` command."""
-    global _started
+    global _started, _interrupted
+    import signal
+    import threading
     args = sys.argv[1:]
     previous = {k: os.environ.get(k) for k in ("HYDRA_FULL_ERROR", PARENT_ENV)}
     os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing and exiting 1
     os.environ[PARENT_ENV] = str(os.getpid())
-    _started = False
+    _started, _interrupted = False, None
+    in_main = threading.current_thread() is threading.main_thread()   # where signal handlers can be set
+    on_term = signal.signal(signal.SIGTERM, _terminate) if in_main else None
     try:
         _main()
+    except KeyboardInterrupt as err:
+        print(f"sdexp: {_interruption(err)}", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
     except UserError as err:
         fail(str(err))
     except (HydraException, OmegaConfBaseException) as err:
@@ -210,6 +243,8 @@ def main() -> None:
         fail(f"cannot create the run's output folder: {err} (choose a writable one with "
              f"hydra.run.dir=<folder>, or hydra.sweep.dir=<folder> with -m)")
     finally:   # main() called in-process (tests, notebooks) leaves the environment as it was
+        if in_main:
+            signal.signal(signal.SIGTERM, on_term)
         for key, value in previous.items():
             if value is None:
                 os.environ.pop(key, None)

@@ -47,7 +47,9 @@ def run_spawned(fn: Callable, tasks: Sequence[tuple], workers: int, progress: Ca
                 retries: int = 1) -> list:
     """[fn(*task, report=...) for task in tasks] on ``workers`` spawned processes; ``report(n)``
     in a child calls ``progress(n)`` here. A child's error is raised here; the tasks not yet
-    started are cancelled (a task that already wrote its own output keeps it).
+    started are cancelled (a task that already wrote its own output keeps it). Interrupted
+    (Ctrl-C, KeyboardInterrupt here), the workers are ended at once, their tasks unfinished (a
+    pool would otherwise run the tasks it had queued to the end first).
 
     A worker that dies without an error of its own (killed by a signal: the kernel's OOM killer,
     an operator, a crash) breaks the whole pool: the tasks it left unfinished run again on a fresh
@@ -88,7 +90,7 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
     try:
         with ProcessPoolExecutor(min(workers, len(todo)) or 1, mp_context=ctx, initializer=_init,
                                  initargs=(q, os.getpid())) as pool:
-            with one_thread_children():
+            with one_thread_children(), _deaf_to_ctrl_c():
                 futures = {i: pool.submit(_call, fn, tasks[i]) for i in todo}  # children start here
             processes = list(getattr(pool, "_processes", {}).values())   # for their exit codes
             try:
@@ -107,9 +109,13 @@ def _run_pool(fn, tasks, todo, workers, progress, results: dict) -> None:
                 codes = [c for c in codes if c != -signal.SIGTERM] or codes
                 how = ", ".join(f"signal {signal.Signals(-c).name}" if c < 0 else f"exit code {c}" for c in codes)
                 raise _Broken(f"a worker process ended abruptly ({how or 'cause unknown'})") from None
-            except BaseException:
-                for f in futures.values():
-                    f.cancel()
+            except BaseException as err:
+                if isinstance(err, Exception):
+                    for f in futures.values():
+                        f.cancel()
+                else:   # interrupted: the workers end now, not after the tasks they hold; the pool
+                    # fails the futures (cancelled ones would make Python 3.11's pool thread raise)
+                    end_processes(processes)
                 raise
     finally:
         # what the workers reported before the pool ended, broken or not
@@ -126,6 +132,38 @@ def one_thread_children():
         yield
     finally:
         _restore(saved)
+
+
+@contextlib.contextmanager
+def _deaf_to_ctrl_c():
+    """Processes started within ignore SIGINT from their start on (an ignored signal stays ignored
+    across exec, and Python then installs no KeyboardInterrupt): Ctrl-C reaches a terminal's whole
+    process group, and the parent ends its workers (run_spawned); a worker's own interrupt would
+    print a traceback, or fail only its task and take the next. This process ignores it too for
+    the moment the children take to start."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():   # only there can handlers be set
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def end_processes(processes, wait: float = 2.0) -> None:
+    """SIGTERM to each process still running, SIGKILL to any still there ``wait`` s later."""
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + wait
+    for p in processes:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
 
 
 def _drain(q, drain: Callable, wait: float = 0.0) -> None:

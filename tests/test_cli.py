@@ -188,3 +188,57 @@ def test_a_drone_read_by_name_is_the_drone_hydra_composes(drone):
     file's defaults list as Hydra does: the tripod builds on custom.yaml."""
     from sdexp import conf
     assert conf.drone(drone) == make_config(f"drone={drone}").drone
+
+
+def _running_in_group(pgid: int) -> list[str]:
+    """The processes of process group ``pgid`` that run (not zombies: a container's PID 1 may not
+    reap the orphans that ended), each as its /proc stat line."""
+    running = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:   # ended meanwhile
+            continue
+        state, _, group = text.rpartition(")")[2].split()[:3]
+        if int(group) == pgid and state != "Z":
+            running.append(text)
+    return running
+
+
+def test_ctrl_c_ends_a_run_at_once_leaving_no_worker_no_lock_and_a_resumable_folder(tmp_path, cache_dir):
+    """Ctrl-C as a terminal sends it (SIGINT to the whole process group) in the data generation of
+    a run with two workers and far more data than it will make: the run ends within seconds,
+    its workers with it, with one line that says how to resume, its lock released and its config
+    kept, and nothing leaked (Python's resource tracker would name leaked semaphores)."""
+    import os
+    import signal
+    import time
+    from tests.eval.references import SHRUNK
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "sdexp.cli", "experiment=sota", *SHRUNK, "data.samples=2000000",
+                             "data.workers=2", f"cache_dir={cache_dir}", f"hydra.run.dir={out}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        before = []
+        for line in proc.stdout:   # up to the data generation's start, then its workers' start
+            before.append(line)
+            if "data generation" in line and "started" in line:
+                break
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)
+        after, _ = proc.communicate(timeout=30)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, "".join(before) + after
+    assert took < 3.0, f"{took:.1f} s"
+    assert f"sdexp: interrupted (Ctrl-C): {out} keeps what the run finished, and the same command resumes it" in after
+    assert "Traceback" not in after and "leaked" not in after, after
+    assert "data generation rod (2 workers): stopped after" in after
+    time.sleep(0.5)
+    assert _running_in_group(proc.pid) == []   # no worker left
+
+    assert not (out / ".sdexp-run.lock").exists() and (out / "config.yaml").exists()
+    assert "interrupted (Ctrl-C)" in (out / "cli.log").read_text()
