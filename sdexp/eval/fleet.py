@@ -21,6 +21,9 @@ goes on (a resumed run keeps that row: delete its job file to try the drone agai
 thrust-to-weight, the largest rotor's share of Tmax at hover, the fold that hover thrust holds
 open loop, the rank of the rigid wrench, and how well its nets predict (beside the flights).
 
+Every flight is said against its task's tolerance (``verdict``: within, missed by, lost control)
+in the log, in ``fleet.csv``'s ``outcome`` column and in the summary.
+
 Writes ``fleet.csv`` (one row per drone, seed, task and controller), ``physics.csv`` (one row
 per drone and seed), ``fleet.png`` (drones x tasks per controller, colour = the task's error
 against its tolerance, a cross for failures) and metrics with the fleet's wall time.
@@ -56,6 +59,33 @@ UNITS = {"final_error": "m", "velocity_error_rms": "m/s", "bend_rms_deg": "deg"}
 
 def tolerance(task: str, p: FleetParams, trip: float) -> float:
     return {"hover": 0.1, "reach": 0.1 * trip, "velocity": 0.25 * float(p.speed), "deform": 5.0}[task]
+
+
+# a flight against its task's tolerance: it ended within it, survived but missed it, or failed
+OUTCOMES = ("within", "missed", "lost control", "failed")
+
+
+def outcome(row: dict) -> str:
+    """One of OUTCOMES: "failed" is a simulator blow-up or a controller failure, "lost control"
+    the loss-of-control rule (tilt, arena); a survivor's error unmeasured counts as missed."""
+    if not row["survived"]:
+        return "lost control" if str(row["failure"]).startswith("loss_of_control") else "failed"
+    return "within" if float(row["primary_value"]) <= float(row["tolerance"]) else "missed"
+
+
+def verdict(row: dict) -> str:
+    """A flight said against its tolerance: "within 0.1 m (0.059)", "missed by 2.64 m (2.74
+    against 0.1)", "lost control at 1.20 s (tilt 93.1 deg)"."""
+    from sdexp.eval.flights import short_reason
+    kind = outcome(row)
+    if kind in ("lost control", "failed"):
+        return f"{kind} at {row['survival_time']:.2f} s ({short_reason(row['failure'])})"
+    value, tol, unit = float(row["primary_value"]), float(row["tolerance"]), UNITS[row["primary"]]
+    if not np.isfinite(value):
+        return f"missed: survived, its {row['primary']} not measured (tolerance {tol:.3g} {unit})"
+    if kind == "within":
+        return f"within {tol:.3g} {unit} ({value:.3g})"
+    return f"missed by {value - tol:.3g} {unit} ({value:.3g} against {tol:.3g})"
 
 
 def samples_for(p: FleetParams, n_s: int, dim: int, samples: int) -> int:
@@ -453,9 +483,9 @@ def run(run: Run) -> dict:
         if res["error"]:
             log.warning(f"sdexp: fleet: {res['drone']} seed {res['seed']} did not fly: {res['error']}")
         else:
-            ok = sum(r["survived"] for r in res["rows"])
-            log.info(f"sdexp: fleet: {res['drone']} seed {res['seed']}: {res['samples']} transitions, "
-                     f"{ok} of {len(res['rows'])} flights survived, job {res['seconds'].get('total', 0.0):.0f} s")
+            log.info(f"sdexp: fleet: {res['drone']} seed {res['seed']}: {res['samples']} transitions, job "
+                     f"{res['seconds'].get('total', 0.0):.0f} s; " + "; ".join(
+                         f"{r['task']} under {r['controller']} {verdict(r)}" for r in res["rows"]))
     table = fleet_table(ordered)
     physics = physics_table(ordered)
     run.table(table, "fleet")
@@ -466,6 +496,7 @@ def run(run: Run) -> dict:
            "jobs": len(ordered), "jobs_run": len(done), "jobs_failed": sum(bool(r["error"]) for r in ordered)}
     for (drone, task, ctl), grp in table[table["task"] != "-"].groupby(["drone", "task", "controller"]):   # flown rows
         out[f"{drone}_{task}_{ctl}_survived"] = int(grp["survived"].sum())
+        out[f"{drone}_{task}_{ctl}_within"] = int((grp["outcome"] == "within").sum())
         out[f"{drone}_{task}_{ctl}_{grp['primary'].iloc[0]}_median"] = float(grp["primary_value"].median())
     return out
 
@@ -506,7 +537,7 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
 
 FLIGHT_COLUMNS = ("drone", "seed", "task", "controller", "survived", "survival_time", "failure", "seconds",
                   "final_error", "velocity_error_rms", "bend_rms_deg", "max_position_deviation", "max_tilt_deg",
-                  "thrust_usage", "primary", "primary_value", "tolerance", "samples", "recipe")
+                  "thrust_usage", "primary", "primary_value", "tolerance", "outcome", "samples", "recipe")
 
 
 def fleet_table(results: list[dict]) -> pd.DataFrame:
@@ -518,8 +549,8 @@ def fleet_table(results: list[dict]) -> pd.DataFrame:
             rows.append({"drone": res["drone"], "seed": res["seed"], "task": "-", "controller": "-",
                          "survived": False, "failure": f"job: {res['error']}", "samples": res["samples"],
                          "recipe": res.get("recipe", "")})
-        for row in res["rows"]:
-            rows.append({**row, "samples": res["samples"], "recipe": res.get("recipe", "")})
+        for row in res["rows"]:   # the outcome from the row: a resumed fleet's older job files get it too
+            rows.append({**row, "outcome": outcome(row), "samples": res["samples"], "recipe": res.get("recipe", "")})
     # every column a flight row has, also when no job flew (then all rows are failed jobs')
     return pd.DataFrame(rows).reindex(columns=list(dict.fromkeys([*FLIGHT_COLUMNS, *(k for r in rows for k in r)])))
 
@@ -576,13 +607,17 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
 
 
 def summary(params: FleetParams, metrics: dict) -> str:
-    """Survivors per task and controller over the fleet."""
+    """Per controller and task, the fleet's flights against the task's tolerance: within it,
+    survived but missed it, lost (control lost or failed)."""
+    flown = metrics["jobs"] - metrics["jobs_failed"]   # every job that flew flies every task
     lines = [f"  {metrics['jobs']} jobs (drone x seed), {metrics['jobs_failed']} did not fly; "
              f"wall {metrics['wall_seconds'] / 60:.1f} min"]
     for ctl in params.controllers:
         parts = []
         for task in params.tasks:
-            n = sum(v for k, v in metrics.items() if k.endswith(f"_{task}_{ctl}_survived"))
-            parts.append(f"{task} {n}")
-        lines.append(f"  {ctl}: flights survived per task: " + ", ".join(parts))
+            count = {end: sum(v for k, v in metrics.items() if k.endswith(f"_{task}_{ctl}_{end}"))
+                     for end in ("within", "survived")}
+            parts.append(f"{task} {count['within']} within, {count['survived'] - count['within']} missed, "
+                         f"{flown - count['survived']} lost")
+        lines.append(f"  {ctl}, of {flown} flights a task against its tolerance: " + "; ".join(parts))
     return "\n".join(lines)

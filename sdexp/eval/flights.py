@@ -76,9 +76,13 @@ def ending(m: dict) -> str:
     """How a flight ended, for a figure title: survived, or the failure's time and short reason."""
     if m["survived"]:
         return f"survived {m['survival_time']:.0f} s"
-    why = m["failure"].split(": ", 1)[-1]
-    why = why.split(",")[0] if why.startswith("left the arena") else why.split(" > ")[0]
-    return f"failed at {m['survival_time']:.2f} s ({why})"
+    return f"failed at {m['survival_time']:.2f} s ({short_reason(m['failure'])})"
+
+
+def short_reason(failure: str) -> str:
+    """A flight's failure without its kind and numbers: "tilt 93.1 deg", "left the arena"."""
+    why = str(failure).split(": ", 1)[-1]
+    return why.split(",")[0] if why.startswith("left the arena") else why.split(" > ")[0]
 
 
 def flight_table(flight: Flight, dyn) -> pd.DataFrame:

@@ -254,3 +254,32 @@ def test_the_data_torque_map_fit_recovers_a_lagged_map_with_the_acting_command()
     fit = data_torque_map(arrays, rigid, [0], dt, lag)
     assert abs(fit["data_torque_map_ratio_acting"] - 1) < 0.05 and fit["data_torque_map_error_acting"] < 0.1
     assert fit["data_torque_map_ratio_sent"] < 0.9 and fit["data_level_transitions"] == n
+
+
+def _row(survived=True, value=0.05, failure="", task="hover"):
+    return {"task": task, "controller": "ours", "survived": survived, "survival_time": 1.2 if failure else 2.0,
+            "failure": failure, "primary": "final_error", "primary_value": value, "tolerance": 0.1}
+
+
+@pytest.mark.parametrize("row, kind, words", [
+    (_row(value=0.059), "within", "within 0.1 m (0.059)"),
+    (_row(value=2.74), "missed", "missed by 2.64 m (2.74 against 0.1)"),
+    (_row(False, 3.0, "loss_of_control: tilt 93.1 deg > 90"), "lost control", "lost control at 1.20 s (tilt 93.1 deg)"),
+    (_row(False, 3.0, "simulator: non-finite state"), "failed", "failed at 1.20 s (non-finite state)"),
+    (_row(value=float("nan")), "missed", "missed: survived, its final_error not measured (tolerance 0.1 m)"),
+])
+def test_every_flight_is_said_against_its_tolerance(row, kind, words):
+    assert fleet.outcome(row) == kind and fleet.verdict(row) == words
+
+
+def test_the_summary_counts_flights_within_missed_and_lost_per_task():
+    """Three jobs of one drone, one of which did not fly: two hovers, one within and one missed."""
+    metrics = {"jobs": 3, "jobs_failed": 1, "wall_seconds": 60.0, "rod_hover_ours_survived": 2, "rod_hover_ours_within": 1,
+               "rod_reach_ours_survived": 1, "rod_reach_ours_within": 0}
+    params = replace(FleetParams(), controllers=["ours"], tasks=["hover", "reach"])
+    text = fleet.summary(params, metrics)
+    assert "ours, of 2 flights a task against its tolerance: hover 1 within, 1 missed, 0 lost; " \
+           "reach 0 within, 1 missed, 1 lost" in text
+    table = fleet.fleet_table([{"drone": "rod", "seed": 0, "error": None, "samples": 800,
+                                "rows": [{**_row(value=0.2), "drone": "rod", "seed": 0}]}])
+    assert list(table["outcome"]) == ["missed"]
