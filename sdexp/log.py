@@ -47,11 +47,13 @@ class Phase:
     its log. ``enabled=False``: silent. The interface is the part of tqdm's the library uses:
     ``update(n)``, ``set_postfix(**kw)``, ``close()``, a context manager; ``iterate(it)`` wraps
     an iterable. ``clock`` (tests) replaces time.perf_counter; ``bar`` forces (True) or rules
-    out (False) the terminal bar."""
+    out (False) the terminal bar. ``quiet_for``: a phase that is mostly quick (a compile the
+    caches usually spare) says nothing, its end included, unless it takes longer than that many
+    seconds: then a line says it started that long ago, and it goes on as any phase."""
 
     def __init__(self, desc: str, total: float | None = None, unit: str = "it", initial: int = 0,
                  enabled: bool = True, bar: bool | None = None, logger: logging.Logger | None = None,
-                 clock=None, heartbeat: bool = True):
+                 clock=None, heartbeat: bool = True, quiet_for: float | None = None):
         import threading
         import time
         self.desc, self.total, self.unit = desc, total, unit
@@ -64,16 +66,19 @@ class Phase:
         self._bar = None
         self._lock = threading.Lock()
         self._stop = None
+        self.quiet_for = quiet_for
+        self.said = not quiet_for   # a quiet phase's lines wait until it has taken quiet_for s
         if not enabled:
             return
         self.t0 = self._last = self.clock()
         self._next = self._step_after(self._frac())
-        size = "" if not total else f" ({_count(total - initial)} {unit}{' to go' if initial else ''})"
-        self.log.info(f"sdexp: {desc}: started{size}")
-        if on_terminal() if bar is None else bar:
+        self._size = "" if not total else f" ({_count(total - initial)} {unit}{' to go' if initial else ''})"
+        if self.said:
+            self.log.info(f"sdexp: {desc}: started{self._size}")
+        if self.said and (on_terminal() if bar is None else bar):
             from tqdm import tqdm
             self._bar = tqdm(total=total, initial=initial, desc=desc, unit=unit, leave=False)
-        elif heartbeat:
+        elif heartbeat or not self.said:
             self._stop = threading.Event()
             threading.Thread(target=self._beat, name=f"sdexp progress: {desc}", daemon=True).start()
 
@@ -87,7 +92,7 @@ class Phase:
             return
         frac = self._frac()
         # no line at 100%: the closing line follows
-        if frac is not None and self._next <= frac + 1e-9 < 1 and self.clock() - self._last >= MIN_INTERVAL:
+        if self.said and frac is not None and self._next <= frac + 1e-9 < 1 and self.clock() - self._last >= MIN_INTERVAL:
             self._next = self._step_after(frac)
             self._say()
 
@@ -128,12 +133,14 @@ class Phase:
             self._finish(f"stopped after {_seconds(self.clock() - self.t0)}")
 
     def _finish(self, line: str) -> None:
-        self.closed = True
+        with self._lock:   # a quiet phase is either announced and closed with a line, or silent
+            self.closed = True
         if self._stop is not None:
             self._stop.set()
         if self._bar is not None:
             self._bar.close()
-        self.log.info(f"sdexp: {self.desc}: {line}")
+        if self.said:
+            self.log.info(f"sdexp: {self.desc}: {line}")
 
     def __enter__(self):
         return self
@@ -174,8 +181,20 @@ class Phase:
 
     def _beat(self) -> None:
         while not self._stop.wait(1.0):
-            if self.clock() - self._last >= MAX_INTERVAL:
+            if not self.said:
+                if self.clock() - self.t0 >= self.quiet_for:
+                    self._announce()
+            elif self.clock() - self._last >= MAX_INTERVAL:
                 self._say()
+
+    def _announce(self) -> None:
+        """A quiet phase's first line, once it has taken quiet_for s."""
+        with self._lock:
+            if self.closed:
+                return
+            self.said, self._last = True, self.clock()
+            extra = f"; {self.postfix}" if self.postfix else ""
+            self.log.info(f"sdexp: {self.desc}: started {_seconds(self._last - self.t0)} ago{self._size}{extra}")
 
 
 def _count(n: float) -> str:
@@ -194,3 +213,80 @@ def _rate(done: float, secs: float, unit: str) -> str:
     if per >= 100:
         return f"{per:,.0f} {unit}/s"
     return f"{per:.3g} {unit}/s" if per >= 1 else f"{secs / done:.3g} s/{unit.rstrip('s')}"
+
+
+# ------------------------------------------------------------------------------ numba's compiling
+
+NUMBA_QUIET = 3.0   # s of compiling in a row before the log says so
+NUMBA_PAUSE = 2.0   # s without a compile that end a run of compiles
+
+_numba_said = None
+
+
+class NumbaCompiles:
+    """numba compiles each function on its first call unless its on-disk cache has it: on a new
+    machine, after a numba upgrade or a code change, a run's first minute (several on a loaded
+    machine) goes to compiling. Each run of compiles (none NUMBA_PAUSE s apart) is a quiet
+    Phase: said once it has taken NUMBA_QUIET s, naming the function compiling then, and closed
+    with how many it compiled (its time includes the pause that ends it). ``on_start`` and
+    ``on_end`` are numba's compile events'."""
+
+    def __init__(self, quiet: float = NUMBA_QUIET, pause: float = NUMBA_PAUSE):
+        import threading
+        self.quiet, self.pause = quiet, pause
+        self._lock = threading.Lock()
+        self.phase: Phase | None = None
+        self._depth = 0
+        self._timer = None
+
+    def on_start(self, name: str) -> None:
+        with self._lock:
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
+            if self.phase is None:
+                self.phase = Phase("numba: compiling on first use (cached on disk for the runs after)",
+                                   unit="functions", quiet_for=self.quiet)
+            self._depth += 1
+            if self._depth == 1:   # the outermost: the function the run called
+                self.phase.set_postfix(now=name)
+
+    def on_end(self) -> None:
+        import threading
+        with self._lock:
+            self._depth -= 1
+            self.phase.update()
+            if self._depth == 0:
+                self._timer = threading.Timer(self.pause, self._close)
+                self._timer.daemon = True
+                self._timer.start()
+
+    def _close(self) -> None:
+        with self._lock:
+            if self._depth == 0 and self.phase is not None:
+                self.phase.postfix = ""
+                self.phase.close()
+                self.phase = None
+
+
+def say_numba_compiles() -> None:
+    """NumbaCompiles on this process's numba compiles (once; a no-op without numba)."""
+    global _numba_said
+    if _numba_said is not None:
+        return
+    try:
+        from numba.core import event
+    except ImportError:
+        return
+    compiles = NumbaCompiles()
+
+    class Listener(event.Listener):
+        def on_start(self, ev):
+            f = ev.data["dispatcher"].py_func
+            compiles.on_start(f"{f.__module__}.{f.__qualname__}")
+
+        def on_end(self, ev):
+            compiles.on_end()
+
+    _numba_said = compiles
+    event.register("numba:compile", Listener())

@@ -147,3 +147,50 @@ def test_a_phase_without_total_beats_and_an_aborted_one_says_so(caplog):
 def test_on_a_terminal_the_bar_replaces_the_progress_lines(caplog):
     lines = phase_lines(caplog, total=100, unit="steps", updates=100, bar=True)
     assert len(lines) == 2 and lines[1].startswith("sdexp: job: done in")
+
+
+def test_a_quiet_phase_says_nothing_when_quick_and_all_when_slow(caplog):
+    """A compile the caches usually spare: silent in the usual case, said once it is slow."""
+    import logging
+    import time
+
+    from sdexp.log import Phase
+    with caplog.at_level(logging.INFO, logger="sdexp.progress"):
+        with Phase("compiling", quiet_for=0.3, bar=False):
+            pass
+        assert caplog.records == []
+        with Phase("compiling", quiet_for=0.3, bar=False):
+            time.sleep(1.3)   # the heartbeat looks every second
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and lines[0].startswith("sdexp: compiling: started 1.") and lines[0].endswith(" s ago")
+    assert lines[1].startswith("sdexp: compiling: done in 1.")
+
+
+def test_numba_compiling_is_said_when_it_takes_long(caplog):
+    """A run of compiles (none a pause apart) is one quiet phase naming the function the run
+    called; and the listener is on numba's own compile events."""
+    import logging
+    import time
+
+    import numba
+
+    from sdexp import log
+    with caplog.at_level(logging.INFO, logger="sdexp.progress"):
+        compiles = log.NumbaCompiles(quiet=0.5, pause=0.3)
+        compiles.on_start("sdexp.quick")
+        compiles.on_end()
+        time.sleep(0.6)
+        assert caplog.records == [] and compiles.phase is None      # quick: nothing said
+        compiles.on_start("sdexp.sim.slow")
+        time.sleep(1.2)
+        compiles.on_start("sdexp.sim.callee")                       # compiled inside the first
+        compiles.on_end()
+        compiles.on_end()
+        time.sleep(0.6)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("sdexp: numba: compiling on first use") and lines[0].endswith("now sdexp.sim.slow")
+    assert "done in 1." in lines[1] and "functions/s" in lines[1]
+    log.say_numba_compiles()
+    numba.njit(lambda x: x + 1)(1)   # not cached: compiled, which starts a run of compiles
+    assert log._numba_said.phase is not None

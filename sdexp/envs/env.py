@@ -74,6 +74,7 @@ class SoftDroneEnv(gym.Env):
         velocity; the deform task's angle_deg, settle_seconds, ramp_seconds, hold_seconds)."""
         from sdexp.envs.config import compose_config
         from sdexp.envs.tasks import make_task
+        from sdexp.eval.run import compiling_said
         from sdexp.sim.drone import build_drone
         from sdexp.sim.simulator import Simulator
 
@@ -84,6 +85,7 @@ class SoftDroneEnv(gym.Env):
             raise UserError(f"render_mode = {render_mode!r} is unknown: choose one of None, "
                             f"{', '.join(self.metadata['render_modes'])}")
         self.render_mode = render_mode
+        compiling_said()   # a cold machine's first env takes a minute: the log says why
         self.cfg = config if config is not None else compose_config(drone, overrides)
         cfg = self.cfg
         self.drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)

@@ -381,18 +381,24 @@ def write_job(path: Path, result: dict) -> None:
 
 def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -> dict:
     """One drone and seed: learn, fly every task under every controller; written to ``path``.
-    Never raises for the drone's sake: a failure is the job's ``error``, with its phase."""
+    Never raises for the drone's sake: a failure is the job's ``error``, with its phase.
+    ``report``: the phase it starts (a str, ``job_progress``), and 1 when it is done."""
     from sdexp.eval.flights import Setup
+
+    def starting(what: str) -> str:
+        if report is not None:
+            report(f"{name} seed {seed}: {what}")
+        return what
 
     job_cfg = job_config(cfg, name, seed, p)
     result = {"drone": name, "seed": int(seed), "key": job_key(job_cfg, p), "samples": int(job_cfg.data.samples),
               "recipe": recipe_text(p.recipes.get(name)), "rows": [],
               "physics": None, "error": None, "seconds": {}}
-    phase, t0 = "learning (data and nets)", time.perf_counter()
+    phase, t0 = starting("learning (data and nets)"), time.perf_counter()
     try:
         setup = Setup(job_cfg, progress=False)
         result["seconds"]["learning"] = time.perf_counter() - t0
-        phase = "physics"
+        phase = starting("physics")
         t1 = time.perf_counter()
         result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained, cache_dir=job_cfg.cache_dir), **model_at_hover(setup)}
         result["seconds"]["physics"] = time.perf_counter() - t1
@@ -400,7 +406,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         trip = float(p.reach_lengths) * body_length(setup)
         for task_name, (task, since) in tasks_for(setup, p).items():
             for ctl_name in p.controllers:
-                phase = f"{task_name} under {ctl_name}"
+                phase = starting(f"{task_name} under {ctl_name}")
                 sim = setup.simulator()
                 flight, m = setup.fly(sim, setup.controller(ctl_name, sim), task, f"{name} {task_name}")
                 errors = flight_errors(flight, setup.dyn, since)
@@ -421,6 +427,17 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
     if report is not None:
         report(1)
     return result
+
+
+def job_progress(bar):
+    """The fleet's jobs' ``report``: a str is the phase a job starts, shown in the progress lines
+    (a job learns for minutes), a number is jobs done."""
+    def report(item) -> None:
+        if isinstance(item, str):
+            bar.set_postfix(now=item)
+        else:
+            bar.update(item)
+    return report
 
 
 def _order(names: list[str], seeds: list[int]) -> list[tuple[str, int]]:
@@ -471,9 +488,9 @@ def run(run: Run) -> dict:
     with Phase("fleet jobs (drone x seed)", total=len(todo), unit="jobs") as bar:
         workers = max(1, min(int(p.workers), len(todo)))
         if workers == 1:
-            done = [fly_job(*job, report=bar.update) for job in todo]
+            done = [fly_job(*job, report=job_progress(bar)) for job in todo]
         else:
-            done = run_spawned(fly_job, todo, workers, bar.update)
+            done = run_spawned(fly_job, todo, workers, job_progress(bar))
     for res in done:
         results[(res["drone"], res["seed"])] = res
     _fill_diagnostics(cfg, p, results, jobs_dir)

@@ -353,10 +353,23 @@ def _run_in(out_dir: Path, config: Config, fn: Callable, resolved: dict, overrid
              + (f" ({', '.join(changed)})" if changed else "") + f" -> {out_dir}")
     from sdexp.provenance import source
     log.info(f"sdexp: code: {source()}")
+    compiling_said()
     with limited_threads(cores):
         metrics = fn(Run(config, out_dir))
     write_json(done, metrics)
     return metrics
+
+
+def compiling_said() -> None:
+    """What a cold machine spends a run's first minutes on, said in the log (sdexp.log's quiet
+    phases: nothing when the caches have it): numba's compiling (sdexp.log.say_numba_compiles),
+    and the FEM kernels' C build, once per machine and kernel source, done here ahead of the
+    first simulator (sdexp.sim.physics.native.library, which loads it from then on)."""
+    from sdexp.log import Phase, say_numba_compiles
+    from sdexp.sim.physics.native import library
+    say_numba_compiles()
+    with Phase("compiling the FEM kernels (C, once per machine and kernel source)", quiet_for=2.0):
+        library()
 
 
 def discard(out_dir: Path, before: set[str]) -> None:

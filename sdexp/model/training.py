@@ -226,8 +226,8 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
                   report: Callable[[int], None] | None = None, threads: int | None = None
                   ) -> tuple[ResidualMLP, pd.DataFrame, float]:
     """Train one ResidualMLP; returns (net in eval mode, per-epoch history, wall seconds).
-    ``report(1)`` is called after every epoch (progress from a worker process); ``threads``
-    overrides ``model.threads``."""
+    ``report({"net", "epoch", "train", "val"})`` is called after every epoch with its losses
+    (progress from a worker process); ``threads`` overrides ``model.threads``."""
     from sdexp.log import Phase
 
     torch.set_num_threads(int(threads or model_cfg.threads))
@@ -273,7 +273,7 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
             bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val_loss:.4f}")
             bar.update()
             if report is not None:
-                report(1)
+                report({"net": name, "epoch": epoch, "train": train_loss, "val": val_loss})
     seconds = time.perf_counter() - t0
     if best_state is not None:
         net.load_state_dict(best_state)
@@ -425,7 +425,14 @@ def _train_parallel(jobs, epochs: int, progress: bool):
     names = ", ".join(job[-1] for job in jobs)
     with Phase(f"training nets {names} (one process each)", total=epochs * len(jobs), unit="epochs",
                enabled=progress) as bar:
-        results = run_spawned(_train_job, jobs, len(jobs), bar.update)
+        latest = {}
+
+        def epoch_done(row: dict) -> None:
+            """A worker's epoch: counted, its losses shown in the progress lines beside the others'."""
+            latest[row["net"]] = f"epoch {row['epoch']} train {row['train']:.4f} val {row['val']:.4f}"
+            bar.set_postfix(**latest)
+            bar.update()
+        results = run_spawned(_train_job, jobs, len(jobs), epoch_done)
     return [(ResidualMLP.from_saved(spec, state), pd.DataFrame(hist), sec) for spec, state, hist, sec in results]
 
 

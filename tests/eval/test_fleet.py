@@ -283,3 +283,14 @@ def test_the_summary_counts_flights_within_missed_and_lost_per_task():
     table = fleet.fleet_table([{"drone": "rod", "seed": 0, "error": None, "samples": 800,
                                 "rows": [{**_row(value=0.2), "drone": "rod", "seed": 0}]}])
     assert list(table["outcome"]) == ["missed"]
+
+
+def test_a_jobs_phase_shows_in_the_fleets_progress_lines():
+    """A job learns for minutes: the phase it is in shows beside the count of jobs done."""
+    from sdexp.log import Phase
+    with Phase("fleet jobs", total=2, unit="jobs", bar=False, heartbeat=False) as bar:
+        report = fleet.job_progress(bar)
+        report("rod seed 0: learning (data and nets)")
+        assert bar.postfix == "now rod seed 0: learning (data and nets)"
+        report(1)
+        assert bar.n == 1
