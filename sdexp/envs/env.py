@@ -204,8 +204,8 @@ class SoftDroneEnv(gym.Env):
             return None
         if self._picture is None:
             from sdexp.eval.animation import LivePicture
-            self._picture = LivePicture(self.drone, title=f"{self.spec.id if self.spec else self.drone.name}, "
-                                                          f"{self.task_name}")
+            name = self.spec.id if self.spec else self.drone.name
+            self._picture = LivePicture(self.drone, f"{name}, {self.task_name}", list(self.cfg.sim.obstacles))
         return self._picture(np.asarray(self.sim.x, dtype=float), self.sim.t)
 
     def _error(self, x: np.ndarray) -> dict[str, np.ndarray]:

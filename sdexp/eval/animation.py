@@ -348,14 +348,14 @@ class LivePicture:
     motion on a fixed scale (0 to LIVE_DEFORMATION of its size: the colours of one episode and the
     next compare)."""
 
-    def __init__(self, drone, title: str = "", size: tuple[int, int] = SIZE):
+    def __init__(self, drone, title: str = "", obstacles=None, size: tuple[int, int] = SIZE):
         import matplotlib
         fem = drone.fem
         self.rest, self.weights, self.faces = fem.rest, fem.mass, np.asarray(drone.boundary)
         body = float(np.ptp(self.rest, axis=0).max())
         norm = matplotlib.colors.Normalize(0.0, 100.0 * LIVE_DEFORMATION * body)
         self.painter = Painter(self.rest.shape[1], self.faces, _View(self.rest[None], self.rest, "follow"),
-                               norm, DEFORMATION_LABEL, title=title, size=size)
+                               norm, DEFORMATION_LABEL, _boxes(obstacles), title, size)
 
     def __call__(self, pts: np.ndarray, t: float) -> np.ndarray:
         """The (H, W, 3) uint8 picture of the drone at node positions ``pts`` at time ``t``."""
