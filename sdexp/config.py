@@ -32,6 +32,7 @@ ELEMENTS = ("linear", "quadratic")   # sim.element: the FEM element order (sdexp
 # sim.mass_scaling's ceiling: x1.35 on the flower's step already costs +2.6% mass and 3.5% in its
 # frequencies, x1.5 8% and 9% (issue 25): a tenth of the mass is far past any useful budget
 MAX_MASS_SCALING = 0.1
+MODELS = ("full", "reduced")   # sim.model: the full FEM (the reference) or the reduced-order model (sdexp.sim.reduced)
 PRECISIONS = ("float64", "float32")  # sim.precision: the elastic forces' arithmetic (sdexp.sim.physics.fem.PRECISIONS)
 
 # A field that says how a result is computed (threads, worker processes), not what: it is left
@@ -120,6 +121,19 @@ class BoxConfig:
 
 
 @dataclass
+class ReducedConfig:
+    """sim.reduced: the reduced-order model's build (sdexp.sim.reduced; docs/reduced_model.md)."""
+    basis: int = param(48, between(4, 400, unit="deformation basis vectors"))
+    linear_modes: int = param(12, between(0, 100, unit="free-free linear modes kept whole in the basis"))
+    rotor_statics: bool = True   # each rotor's quasi-static response in the basis
+    modal_derivatives: int = param(8, between(0, 30, unit="linear modes whose modal derivatives join the basis"))
+    cubature: int = param(160, between(4, 5000, unit="elements at most"))
+    tolerance: float = param(0.01, between(0, 1, "()", "relative error of the cubature's force fit to stop at"))
+    snapshot_seconds: float = param(40.0, between(1, 3600, unit="s of full-model flight for the basis and cubature"))
+    range_margin: float = param(1.5, between(1, 100, unit="x the snapshots' range of each modal coordinate"))
+
+
+@dataclass
 class SimConfig:
     control_dt: float = param(0.01, positive("s"))   # s; the control loop runs at 100 Hz
     substep: Optional[float] = None      # s; None = largest stable explicit step x safety
@@ -138,6 +152,10 @@ class SimConfig:
     # the nodes of the modes that limit the stable step (gravity on the physical mass); 0 = off
     mass_scaling: float = param(0.0, between(0, MAX_MASS_SCALING, unit="(added inertia as a fraction of the drone's mass; 0 = off)", **UNLESS_DEFAULT))
     effects: List[Any] = field(default_factory=list)  # physical effects (sdexp.sim.physics.effects), each {name|_target_, params}
+    # full: the FEM on every node (the reference) | reduced: the reduced-order model built from it
+    model: str = param("full", choices(MODELS, **UNLESS_DEFAULT))
+    # the reduced model's build (read with sim.model = reduced); keyed only away from its defaults
+    reduced: ReducedConfig = field(default_factory=ReducedConfig, metadata=UNLESS_DEFAULT)
 
 
 @dataclass

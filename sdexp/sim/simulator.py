@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numba
@@ -46,7 +46,7 @@ QUADRATIC_WORK = 4
 
 @dataclass
 class Failure:
-    reason: str      # inverted_element | non_finite | runaway_speed | runaway_extent
+    reason: str      # inverted_element | non_finite | runaway_speed | runaway_extent | left_reduced_range
     time: float      # survival time (s)
     detail: str = ""
 
@@ -72,12 +72,17 @@ class Simulator:
         self._push = [e for e in self.effects if overrides(e, "body_forces")]
         self._sense = [e for e in self.effects if overrides(e, "sense")]
         fem, c, n = self.fem, self.cfg, self.noise
+        self.reduced = self._reduced_model() if getattr(c, "model", "full") == "reduced" else None
         self.scaling = mass_scaling(fem, c.mass_scaling, default_cache_dir())
         if c.mass_scaling > 0 and self.scaling.added is None:
             log.warning(f"sim.mass_scaling = {c.mass_scaling:g}: no step gain for drone {drone.name} within this "
                         f"budget (the first rung, x1.05, needs more added mass); running unscaled")
         inertia = fem.mass if self.scaling.added is None else fem.mass + self.scaling.added
-        dt_stable = stable_substep(fem, c.stability_safety, mass=inertia)
+        if self.reduced is not None:
+            from sdexp.sim.reduced.body import stable_substep as reduced_substep
+            dt_stable = reduced_substep(self.reduced, c.stability_safety)
+        else:
+            dt_stable = stable_substep(fem, c.stability_safety, mass=inertia)
         if not (np.isfinite(dt_stable) and dt_stable > 0):
             raise UserError(f"drone {drone.name}: no stable explicit substep for its mesh (largest eigenvalue of "
                             f"M^-1 K not finite and positive); change drone.mesh (edge_length / layers)")
@@ -96,9 +101,35 @@ class Simulator:
             e.setup(self)
         self.reset()
 
+    def _reduced_model(self):
+        """sim.model = reduced: the drone's reduced model (built or cached), after refusing what
+        it cannot carry: contact, mass scaling, effects that change the model."""
+        from sdexp.sim.reduced.model import build_reduced, spec_of
+        c = self.cfg
+        refuse = [("sim.ground", c.ground is not None, "a ground plane (contact acts on every node)"),
+                  ("sim.obstacles", bool(c.obstacles), "obstacles (contact acts on every node)"),
+                  ("sim.mass_scaling", c.mass_scaling > 0, "mass scaling (decided off; the basis sets the step)")]
+        refuse += [(f"sim.effects: {type(e).__name__}", self.fem is not self.drone.fem,
+                    "an effect that changes the FEM model (mass or stiffness): the basis was fitted on the drone's own")
+                   for e in self.effects if overrides(e, "modify_model")]
+        for key, bad, what in refuse:
+            if bad:
+                raise UserError(f"sim.model = reduced cannot carry {what} ({key}); run it with sim.model=full")
+        return build_reduced(self.drone, spec_of(c.reduced), str(default_cache_dir()),
+                             c.gravity, c.control_dt)
+
     # -------------------------------------------------------------------------------- state
     def _new_body(self) -> None:
         c = self.cfg
+        if self.reduced is not None:
+            from sdexp.sim.reduced.body import ReducedBody
+            self.body = ReducedBody(self.reduced, c.precision)
+            self._imus = replace(self.drone.imus, idx=self.reduced.imu_idx)
+            self.t = 0.0
+            self.failure = None
+            self.applied = np.zeros(self.drone.num_rotors)
+            self._queue = deque([np.zeros(self.drone.num_rotors)] * self._delay_steps)
+            return
         boxes = list(c.obstacles)
         self.body = Body(self.fem, self.threads, self.drone.rotors, c.ground,
                          [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
@@ -115,7 +146,7 @@ class Simulator:
         gets the same draws whatever ran before."""
         self._new_body()
         if position is not None:
-            self.body.x += np.asarray(position, dtype=float)
+            self.body.translate(np.asarray(position, dtype=float))
         self.flight = self.flight + 1 if flight is None else int(flight)
         if self._start:
             rng = np.random.default_rng([abs(int(self.seed)), self.flight]) if self.draws else None
@@ -133,9 +164,12 @@ class Simulator:
         flight's draws (a gust sequence is a function of time) and only ``reset``."""
         from sdexp.sensing.rotations import quat_from_matrix
         self._new_body()
-        self.body.x[:] = x
-        self.body.v[:] = v
-        if rotation is not None and self.drone.dim == 3:
+        if self.reduced is not None:
+            self.body.set_full(x, v)
+        else:
+            self.body.x[:] = x
+            self.body.v[:] = v
+        if rotation is not None and self.drone.dim == 3 and self.reduced is None:
             self.body.set_rotation(quat_from_matrix(np.asarray(rotation)))
         self.t = float(t)
         for e in self.effects:   # after the state is set: an effect may start from it
@@ -161,7 +195,11 @@ class Simulator:
         return self.body.v
 
     def readings(self, noisy: bool = True) -> Readings:
-        r = read_imus(self.t, self.body.x, self.body.v, self.drone.imus)
+        if self.reduced is not None:   # the IMU patches' nodes only, not the whole mesh
+            x, v, _ = self.body.sensor_nodes()
+            r = read_imus(self.t, x, v, self._imus)
+        else:
+            r = read_imus(self.t, self.body.x, self.body.v, self.drone.imus)
         for e in self._sense:  # a sensor's systematic error is part of what it reads
             r = e.sense(r, self)
         return add_noise(r, self.noise, self.rng) if noisy else r
@@ -205,14 +243,20 @@ class Simulator:
 
     def _advance(self, thrust: np.ndarray) -> None:
         body = self.body
-        x_prev, v_prev = body.x.copy(), body.v.copy()
+        before = body.copy_state()
         inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity,
                                    self.drone.deformation_damping)
         self.t += self.cfg.control_dt
         reason = None
-        size = extent(body.x)
+        # the reduced model's extent is bounded by its range check (its mesh is not rebuilt a step)
+        size = extent(body.x) if self.reduced is None else (0.0 if np.all(np.isfinite(body.z)) else np.nan)
+        out = body.outside() if self.reduced is not None else -1   # its range first: what follows, follows from it
         if not (np.isfinite(vmax2) and np.isfinite(size)):
             reason, detail = "non_finite", "positions or velocities are not finite"
+        elif out >= 0:
+            reason, detail = "left_reduced_range", (
+                f"modal coordinate {out} = {body.z[out]:.4g} left the range the reduced model was fitted on "
+                f"[{self.reduced.z_lo[out]:.4g}, {self.reduced.z_hi[out]:.4g}] (sim.reduced.range_margin x the snapshots')")
         elif inverted > 0:
             reason, detail = "inverted_element", f"{inverted} elements inverted"
         elif vmax2 > self.cfg.max_speed ** 2:
@@ -221,4 +265,7 @@ class Simulator:
             reason, detail = "runaway_extent", "body stretched beyond sim.max_stretch x its rest size"
         if reason is not None:
             self.failure = Failure(reason, self.t, detail)
-            body.x[:], body.v[:] = x_prev, v_prev  # keep the last sane state for readings
+            if reason == "left_reduced_range":
+                log.warning(f"sim.model = reduced, drone {self.drone.name}: the flight left the reduced model's "
+                            f"validated range at t = {self.t:.2f} s ({detail}); ended as a failure")
+            body.restore(before)  # keep the last sane state for readings

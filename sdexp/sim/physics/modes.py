@@ -98,13 +98,22 @@ def top_modes(K: sp.csr_matrix, mass: np.ndarray, dim: int, k: int = 1) -> tuple
 def free_frequencies(fem: FemModel, mass: np.ndarray | None = None, k: int = 8,
                      K: sp.csr_matrix | None = None) -> np.ndarray:
     """The first k free-free natural frequencies (Hz) of the body at rest, rigid motions left
-    out: K phi = omega^2 M phi by shift-invert just below zero (K - sigma M is then definite)."""
+    out."""
+    return free_modes(fem, mass, k, K)[0]
+
+
+def free_modes(fem: FemModel, mass: np.ndarray | None = None, k: int = 8,
+               K: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The first k free-free natural frequencies (Hz) and their mass-normalised shapes (nv dim, k):
+    K phi = omega^2 M phi by shift-invert just below zero (K - sigma M is then definite), the
+    rigid motions left out."""
     d = fem.dim
     K = stiffness(fem) if K is None else K
     M = sp.diags(_dofs(fem.mass if mass is None else mass, d))
     rigid = 6 if d == 3 else 3
-    vals = np.sort(spla.eigsh(K.tocsc(), k=k + rigid, M=M.tocsc(), sigma=-1.0, which="LM")[0])
-    return np.sqrt(np.maximum(vals[rigid:], 0.0)) / (2 * np.pi)
+    vals, vecs = spla.eigsh(K.tocsc(), k=k + rigid, M=M.tocsc(), sigma=-1.0, which="LM")
+    order = np.argsort(vals)[rigid:]
+    return np.sqrt(np.maximum(vals[order], 0.0)) / (2 * np.pi), vecs[:, order]
 
 
 def targeted_mass(fem: FemModel, budget: float, step: float = 0.05, modes: int = 24,
