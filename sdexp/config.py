@@ -123,11 +123,11 @@ class BoxConfig:
 @dataclass
 class ReducedConfig:
     """sim.reduced: the reduced-order model's build (sdexp.sim.reduced; docs/reduced_model.md)."""
-    basis: int = param(48, between(4, 400, unit="deformation basis vectors"))
+    basis: int = param(64, between(4, 400, unit="deformation basis vectors"))
     linear_modes: int = param(12, between(0, 100, unit="free-free linear modes kept whole in the basis"))
     rotor_statics: bool = True   # each rotor's quasi-static response in the basis
-    modal_derivatives: int = param(8, between(0, 30, unit="linear modes whose modal derivatives join the basis"))
-    cubature: int = param(160, between(4, 5000, unit="elements at most"))
+    modal_derivatives: int = param(4, between(0, 30, unit="linear modes whose modal derivatives join the basis"))
+    cubature: int = param(200, between(4, 5000, unit="elements at most"))
     tolerance: float = param(0.01, between(0, 1, "()", "relative error of the cubature's force fit to stop at"))
     snapshot_seconds: float = param(40.0, between(1, 3600, unit="s of full-model flight for the basis and cubature"))
     range_margin: float = param(1.5, between(1, 100, unit="x the snapshots' range of each modal coordinate"))

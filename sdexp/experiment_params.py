@@ -21,7 +21,7 @@ from hydra.core.config_store import ConfigStore
 
 from sdexp.config import ELEMENTS
 from sdexp.errors import UserError
-from sdexp.ranges import check_fields, nonnegative, param, positive, ranged
+from sdexp.ranges import at_least, check_fields, choices, nonnegative, param, positive, ranged
 
 PREFIX = "experiment.params."
 
@@ -300,13 +300,28 @@ class ReportParams(Params):
                 raise UserError(f"{PREFIX}{key} = {list(value)!r}: allowed {what}, or null")
 
 
+@dataclass
+class ReducedGatesParams(Params):
+    drones: Optional[List[str]] = drone_choice(None)   # null = all twelve, [] = none (the frontier alone)
+    recipes: List[str] = param(["near_hover", "paper"], choices(("near_hover", "paper")))   # held-out flights' recipes
+    flight_seeds: List[int] = _param([1001], lambda v: v >= 0, ">= 0")   # held out: the snapshots use seeds 0 and 1
+    flight_seconds: float = param(5.0, positive("s"))
+    energy_seconds: float = param(1.0, positive("s"))
+    bend_load: float = param(2.0, nonnegative())   # N: validate_fem's load on the outer rotors
+    frontier_drone: Optional[str] = drone_choice("flower")   # null = no frontier
+    # [basis, modal_derivatives, cubature] points of the frontier (sim.reduced's other keys as set)
+    frontier: List[List[int]] = _param([[32, 2, 100], [48, 4, 150], [96, 6, 300], [128, 8, 400]], lambda v: v >= 0, ">= 0")
+    workers: int = param(2, at_least(1))   # drones built and flown side by side
+
+
 # experiment name (its conf/experiment/<name>.yaml) -> the schema of its params
 PARAMS: dict[str, type[Params]] = {
     "ablation_decomposition": AblationDecompositionParams, "ablation_fixed_point": AblationFixedPointParams,
     "bench_control": BenchControlParams, "bench_sim": BenchSimParams, "bench_sweep": BenchSweepParams,
     "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "fleet": FleetParams, "gallery": GalleryParams,
     "hover_deform": HoverDeformParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
-    "obstacle": ObstacleParams, "record": RecordParams, "report": ReportParams, "sota": SotaParams,
+    "obstacle": ObstacleParams, "record": RecordParams, "reduced_gates": ReducedGatesParams,
+    "report": ReportParams, "sota": SotaParams,
     "validate_fem": ValidateFemParams,
 }
 GROUP = "experiment_params"

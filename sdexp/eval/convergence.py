@@ -130,10 +130,17 @@ def static_response(drone, gravity: float = 9.81, load: float = 2.0, modes: int 
     none for 0): a yardstick that no load or patch placement enters."""
     fem = drone.fem
     fb = balanced(fem, fixed_load(drone, gravity, load))
-    u = static_displacement(fem, fb)
-    out = {"compliance": float(np.sum(fb * u)), "bend": float("nan")}
+    out = bend_and_compliance(drone, fb, static_displacement(fem, fb))
     if modes:
         out["freq"] = free_frequencies(fem, k=modes)
+    return out
+
+
+def bend_and_compliance(drone, fb: np.ndarray, u: np.ndarray) -> dict:
+    """``static_response``'s measures of a displacement u (nv, dim) under the balanced load fb:
+    the RMS bend (deg) its IMUs read and the load's work (J)."""
+    fem = drone.fem
+    out = {"compliance": float(np.sum(fb * u)), "bend": float("nan")}
     if drone.layout.n_s:
         eps = 1e-4 * np.ptp(fem.rest, axis=0).max() / max(np.abs(u).max(), 1e-300)
         x = fem.rest + eps * u

@@ -124,6 +124,7 @@ class Simulator:
         if self.reduced is not None:
             from sdexp.sim.reduced.body import ReducedBody
             self.body = ReducedBody(self.reduced, c.precision)
+            self.body.pushed = bool(self._push)
             self._imus = replace(self.drone.imus, idx=self.reduced.imu_idx)
             self.t = 0.0
             self.failure = None

@@ -33,7 +33,7 @@ from sdexp.sim.reduced.snapshots import NEAR_HOVER, PAPER, flights
 
 log = logging.getLogger(__name__)
 
-REDUCED_FORMAT = 5   # bump when what build_reduced makes changes
+REDUCED_FORMAT = 6   # bump when what build_reduced makes changes
 TRAIN_ON_REMAINDER = bool(int(__import__("os").environ.get("SDEXP_G", "1")))
 POSES = 200          # flight poses the cubature is fitted on
 

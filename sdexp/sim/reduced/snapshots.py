@@ -36,6 +36,16 @@ def hover_thrust(drone: Drone, gravity: float) -> float:
     return float(drone.fem.mass.sum() * gravity / up.sum())
 
 
+def holds(drone: Drone, recipe: Recipe, steps: int, rng: np.random.Generator, gravity: float = 9.81,
+          control_dt: float = 0.01) -> np.ndarray:
+    """(steps, m) thrust commands: the recipe's holds, each rotor redrawn every ``recipe.hold`` s."""
+    centre = hover_thrust(drone, gravity) if recipe.centre == "hover" else 0.0
+    tmax = drone.max_thrust
+    per_hold = max(1, int(round(recipe.hold / control_dt)))
+    draws = centre + rng.uniform(-recipe.spread, recipe.spread, (-(-steps // per_hold), drone.num_rotors)) * tmax
+    return np.clip(np.repeat(draws, per_hold, axis=0)[:steps], -tmax, tmax)
+
+
 def flights(drone: Drone, recipe: Recipe, seconds: float, seed: int, gravity: float = 9.81,
             control_dt: float = 0.01, every: int = 2, safety: float = 0.8):
     """Positions and velocities every ``every`` control steps of ``seconds`` of open-loop holds:
@@ -46,19 +56,14 @@ def flights(drone: Drone, recipe: Recipe, seconds: float, seed: int, gravity: fl
     dt = stable_substep(fem, safety)
     n_sub = int(np.ceil(control_dt / dt - 1e-9))
     dt = control_dt / n_sub
-    centre = hover_thrust(drone, gravity) if recipe.centre == "hover" else 0.0
-    tmax = drone.max_thrust
-    per_hold = max(1, int(round(recipe.hold / control_dt)))
-    per_episode = max(per_hold, int(round(recipe.episode / control_dt)))
+    per_episode = max(1, int(round(recipe.episode / control_dt)))
     rest_size = extent(fem.rest)
     xs, vs = [], []
     steps = int(round(seconds / control_dt))
     k = 0
     while k < steps:
         body = Body(fem, 1, drone.rotors)
-        for j in range(per_episode):
-            if j % per_hold == 0:
-                u = np.clip(centre + rng.uniform(-recipe.spread, recipe.spread, drone.num_rotors) * tmax, -tmax, tmax)
+        for u in holds(drone, recipe, per_episode, rng, gravity, control_dt):
             inverted, vmax2 = body.run(n_sub, dt, u, drone.damping, gravity, drone.deformation_damping)
             k += 1
             if inverted > 0 or not np.isfinite(vmax2) or extent(body.x) > 4 * rest_size:

@@ -1,0 +1,256 @@
+"""experiment=reduced_gates: the reduced-order model (sim.model=reduced) against the full FEM it
+is built from, drone by drone, before it is used anywhere (issue 51). Gates:
+
+- the first 8 free-free frequencies within 1% of the full model's;
+- the linear statics of validate_fem's load (the IMUs' RMS bend and the load's work) within 2%;
+- on held-out open-loop flights of both data recipes (the same thrust sequence, noise off, 5 s):
+  the deformation (rigid motion removed, pooled over the flight) within 5% overall and at the
+  IMU patches, the IMU readings' error stated beside the paper's sensor noise, and no flight
+  that leaves the range the model was fitted on;
+- the energy drift of an undamped, unforced free vibration no worse than the full model's.
+
+Beside them the real-time factor of both models on the same flights, timed side by side in one
+process, and (``frontier``) the flower's error against speed over basis sizes and cubature budgets.
+A drone that fails a gate runs the full model; the table says why, with numbers."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, replace
+
+import numpy as np
+import pandas as pd
+
+from sdexp.eval.run import Run
+
+log = logging.getLogger(__name__)
+
+FREQ_GATE, STATIC_GATE, DEFORM_GATE = 0.01, 0.02, 0.05
+PAPER_ANGLE_NOISE_DEG, PAPER_POSITION_NOISE = 0.573, 0.01   # supplement E
+
+
+def run(run: Run) -> dict:
+    from sdexp.parallel import run_spawned
+    from sdexp.sim.drone import drone_names
+
+    cfg, p = run.cfg, run.params
+    names = drone_names() if p.drones is None else list(p.drones)
+    tasks = [(cfg, name, None) for name in names]
+    if p.frontier_drone:
+        tasks += [(cfg, p.frontier_drone, tuple(point)) for point in p.frontier]
+    rows = run_spawned(gate_row, tasks, min(int(p.workers), max(1, len(tasks))))
+    gates = pd.DataFrame([r for r, t in zip(rows, tasks) if t[2] is None])
+    frontier = pd.DataFrame([r for r, t in zip(rows, tasks) if t[2] is not None])
+    metrics = {}
+    if len(gates):
+        run.table(gates, "gates")
+        gates_plot(gates, run)
+        metrics["drones_passing"] = int(gates["passes"].sum())
+        for r in gates.to_dict("records"):
+            for k in ("freq_error", "bend_error", "compliance_error", "deformation_error", "imu_deformation_error",
+                      "realtime_reduced", "realtime_full", "speedup"):
+                metrics[f"{r['drone']}_{k}"] = r[k]
+            metrics[f"{r['drone']}_passes"] = bool(r["passes"])
+    if len(frontier):
+        run.table(frontier, "frontier")
+        frontier_plot(frontier, run)
+    return metrics
+
+
+def gate_row(cfg, name: str, point: tuple | None, report=None) -> dict:
+    """One drone's gates (or, with ``point`` = (basis, modal_derivatives, cubature), one point of
+    the frontier: the flights and the speed only)."""
+    from sdexp.eval.bench_sim import drone_config
+    from sdexp.sim.drone import build_drone
+    from sdexp.sim.physics.modes import free_frequencies
+    from sdexp.sim.reduced.body import frequencies
+    from sdexp.sim.reduced.model import build_reduced, spec_of
+
+    p = cfg.experiment.params
+    sim = cfg.sim
+    drone = build_drone(drone_config(cfg, name), cfg.cache_dir, sim.element)
+    spec = spec_of(sim.reduced)
+    if point is not None:
+        spec = replace(spec, basis=int(point[0]), modal_derivatives=int(point[1]), cubature=int(point[2]))
+    model = build_reduced(drone, spec, cfg.cache_dir, float(sim.gravity), float(sim.control_dt))
+    row = {"drone": name, "elements": drone.fem.n_elems, "basis": model.r, "modal_derivatives": spec.modal_derivatives,
+           "cubature_elements": len(model.elements), "cubature_fit_error": model.cubature_error,
+           "build_seconds": model.build_seconds}
+    row.update(flight_errors(cfg, drone, spec, p.recipes, p.flight_seeds, float(p.flight_seconds)))
+    if point is None:
+        full_f, red_f = free_frequencies(drone.fem, k=8), frequencies(model, 8)
+        row["freq_error"] = float(np.max(np.abs(red_f / full_f - 1)))
+        row.update(static_errors(drone, model, float(sim.gravity), float(p.bend_load)))
+        row.update(energy_drifts(drone, model, float(p.energy_seconds)))
+        row.update(verdict(row))
+    log.info(f"  {name}{'' if point is None else f' {point}'}: " + ", ".join(
+        f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items() if k != "drone"))
+    return row
+
+
+def verdict(row: dict) -> dict:
+    """Which gates the row fails, with the numbers: 'passes' and 'why'."""
+    fails = []
+    if row["freq_error"] > FREQ_GATE:
+        fails.append(f"frequencies {row['freq_error']:.1%} > {FREQ_GATE:.0%}")
+    for k in ("bend_error", "compliance_error"):
+        if np.isfinite(row[k]) and abs(row[k]) > STATIC_GATE:
+            fails.append(f"{k.split('_')[0]} {row[k]:+.1%} > {STATIC_GATE:.0%}")
+    for k in ("deformation_error", "imu_deformation_error"):
+        if not row[k] <= DEFORM_GATE:
+            fails.append(f"{k.replace('_', ' ')} {row[k]:.1%} > {DEFORM_GATE:.0%}")
+    if row["left_range"]:
+        fails.append(f"{row['left_range']} flights left the fitted range")
+    if row["energy_drift_reduced"] > max(row["energy_drift_full"], 1e-3) * 1.05:
+        fails.append(f"energy drift {row['energy_drift_reduced']:.2%} > the full model's {row['energy_drift_full']:.2%}")
+    return {"passes": not fails, "why": "; ".join(fails)}
+
+
+def static_errors(drone, model, gravity: float, load: float) -> dict:
+    """validate_fem's load, linear statics: the full model's solve and the reduced one's
+    (Phi K_r^-1 Phi^T fb), each measured as validate_fem measures it."""
+    from sdexp.eval.convergence import balanced, bend_and_compliance, fixed_load, static_displacement
+    fem = drone.fem
+    fb = balanced(fem, fixed_load(drone, gravity, load))
+    full = bend_and_compliance(drone, fb, static_displacement(fem, fb))
+    u = (model.Phi @ np.linalg.solve(model.K, model.Phi.T @ fb.ravel())).reshape(fem.rest.shape)
+    red = bend_and_compliance(drone, fb, u)
+    return {f"{k}_error": red[k] / full[k] - 1 if np.isfinite(full[k]) and full[k] != 0 else float("nan")
+            for k in ("bend", "compliance")}
+
+
+def flight_errors(cfg, drone, spec, recipes, seeds, seconds: float) -> dict:
+    """Held-out open-loop flights (recipes x seeds), the same thrust sequence on both models
+    through the Simulator, noise off: the deformation error pooled over each flight (the worst
+    flight reported), the IMUs' reading errors, the range failures and both real-time factors."""
+    from sdexp.config import NoiseConfig
+    from sdexp.sim.reduced.basis import deformations
+    from sdexp.sim.reduced.snapshots import RECIPES, holds
+    from sdexp.sim.simulator import Simulator
+
+    quiet = NoiseConfig(enabled=False)
+    full_cfg = replace(cfg.sim, model="full")
+    red_cfg = replace(cfg.sim, model="reduced", reduced=replace(cfg.sim.reduced, basis=spec.basis,
+                                                                modal_derivatives=spec.modal_derivatives,
+                                                                cubature=spec.cubature))
+    full, red = Simulator(drone, full_cfg, quiet), Simulator(drone, red_cfg, quiet)
+    X, mass = red.reduced.X, drone.fem.mass
+    imu = np.unique(drone.imus.idx)
+    worst = {"deformation_error": 0.0, "imu_deformation_error": 0.0, "imu_angle_error_deg": 0.0,
+             "imu_position_error": 0.0}
+    left, flown, t_full, t_red, sim_seconds = 0, 0.0, 0.0, 0.0, 0.0
+    steps = int(round(seconds / cfg.sim.control_dt))
+    for recipe in recipes:
+        for seed in seeds:
+            u_seq = holds(drone, RECIPES[recipe], steps, np.random.default_rng(seed), cfg.sim.gravity, cfg.sim.control_dt)
+            full.reset(), red.reset()
+            num = np.zeros(2)
+            den = np.zeros(2)
+            for k, u in enumerate(u_seq):
+                t0 = time.perf_counter()
+                rf = full.step(u)
+                t1 = time.perf_counter()
+                rr = red.step(u)
+                t_full += t1 - t0
+                t_red += time.perf_counter() - t1
+                sim_seconds += cfg.sim.control_dt
+                if not (full.alive and red.alive):
+                    break
+                if k % 5 == 4:
+                    uf, ur = deformations(np.array([full.x, red.x]), X, mass)
+                    e = mass[:, None] * (uf - ur) ** 2
+                    n = mass[:, None] * uf ** 2
+                    num += [e.sum(), e[imu].sum()]
+                    den += [n.sum(), n[imu].sum()]
+                    worst["imu_angle_error_deg"] = max(worst["imu_angle_error_deg"], _angle_error(rf, rr))
+                    worst["imu_position_error"] = max(worst["imu_position_error"],
+                                                      float(np.abs(np.asarray(rf.pos) - np.asarray(rr.pos)).max()))
+            left += int(red.failure is not None and red.failure.reason == "left_reduced_range")
+            flown += k * cfg.sim.control_dt
+            err = np.sqrt(num / np.maximum(den, 1e-300))
+            worst["deformation_error"] = max(worst["deformation_error"], float(err[0]))
+            worst["imu_deformation_error"] = max(worst["imu_deformation_error"], float(err[1]))
+    return {**worst, "left_range": left, "flown_seconds": flown, "substeps_full": full.n_sub,
+            "substeps_reduced": red.n_sub, "realtime_full": sim_seconds / t_full,
+            "realtime_reduced": sim_seconds / t_red, "speedup": t_full / t_red}
+
+
+def _angle_error(a, b) -> float:
+    """The largest angle (deg) between two readings' IMU frames (3D) or angles (2D)."""
+    ra, rb = np.asarray(a.rot), np.asarray(b.rot)
+    if ra.ndim == 1:
+        return float(np.rad2deg(np.abs(np.angle(np.exp(1j * (ra - rb)))).max()))
+    c = (np.einsum("kij,kij->k", ra, rb) - 1) / 2
+    return float(np.rad2deg(np.arccos(np.clip(c, -1, 1)).max()))
+
+
+def energy_drifts(drone, model, seconds: float) -> dict:
+    """Both models from one deformed state at rest, no damping, gravity or thrust: the largest
+    relative change of kinetic + co-rotated strain energy (sim.physics.modes.strain_energy of the
+    whole mesh, the reduced one's rebuilt) over ``seconds``."""
+    from sdexp.sim.physics.fem import stable_substep
+    from sdexp.sim.physics.integrator import Body
+    from sdexp.sim.physics.modes import strain_energy
+    from sdexp.sim.reduced.body import ReducedBody, stable_substep as reduced_substep
+
+    fem = drone.fem
+    # a quarter of the fitted range's half-width, alternating signs, about its middle
+    z = 0.5 * (model.z_hi + model.z_lo) + 0.125 * (model.z_hi - model.z_lo) * np.sign(np.arange(model.r) % 2 - 0.5)
+    red = ReducedBody(model)
+    red.place(model.com, np.eye(fem.dim), z)
+    full = Body(fem, 1, drone.rotors)
+    full.x[:] = red.x
+    full.run(20, 0.0)   # steps of zero length: the element rotations converge on the deformed state
+
+    def energy(body):
+        return 0.5 * float(np.sum(fem.mass[:, None] * body.v ** 2)) + strain_energy(fem, body.x)
+
+    out = {}
+    for name, body, dt in (("full", full, stable_substep(fem, 0.8)), ("reduced", red, reduced_substep(model, 0.8))):
+        n = int(np.ceil(0.01 / dt))
+        e0, drift = energy(body), 0.0
+        for k in range(int(round(seconds / 0.01))):
+            body.run(n, 0.01 / n)
+            if k % 5 == 4:
+                drift = max(drift, abs(energy(body) / e0 - 1))
+        out[f"energy_drift_{name}"] = drift
+    return out
+
+
+def gates_plot(gates: pd.DataFrame, run: Run) -> None:
+    import matplotlib.pyplot as plt
+    cols = [("freq_error", FREQ_GATE, "frequencies"), ("bend_error", STATIC_GATE, "bend"),
+            ("compliance_error", STATIC_GATE, "compliance"), ("deformation_error", DEFORM_GATE, "deformation"),
+            ("imu_deformation_error", DEFORM_GATE, "at the IMUs")]
+    fig, axes = plt.subplots(1, len(cols) + 1, figsize=(4 * (len(cols) + 1), 4.2), sharey=True)
+    y = np.arange(len(gates))
+    for ax, (col, gate, title) in zip(axes, cols):
+        v = np.abs(gates[col].to_numpy(float)) / gate
+        ax.barh(y, v, color=np.where(v <= 1, "tab:green", "tab:red"))
+        ax.axvline(1.0, color="k", lw=1)
+        ax.set_title(f"{title}\n(x the gate, {gate:.0%})")
+    ax = axes[-1]
+    ax.barh(y, gates["realtime_reduced"], color="tab:blue", label="reduced")
+    ax.barh(y, gates["realtime_full"], color="tab:gray", label="full")
+    ax.set_xscale("log")
+    ax.set_title("real-time factor")
+    ax.legend(loc="lower right")
+    axes[0].set_yticks(y, gates["drone"])
+    fig.suptitle("The reduced model against the full FEM: green passes its gate")
+    fig.tight_layout()
+    run.figure(fig, "gates")
+
+
+def frontier_plot(frontier: pd.DataFrame, run: Run) -> None:
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ax.scatter(frontier["realtime_reduced"], frontier["deformation_error"], c=frontier["basis"], cmap="viridis")
+    for r in frontier.to_dict("records"):
+        ax.annotate(f"r={r['basis']} md={r['modal_derivatives']} n={r['cubature_elements']}",
+                    (r["realtime_reduced"], r["deformation_error"]), fontsize=7)
+    ax.axhline(DEFORM_GATE, color="k", lw=1, ls="--")
+    ax.set_xlabel("real-time factor (reduced)")
+    ax.set_ylabel("deformation error (worst held-out flight)")
+    ax.set_title(f"{frontier['drone'].iloc[0]}: error against speed")
+    fig.tight_layout()
+    run.figure(fig, "frontier")
