@@ -35,9 +35,10 @@ def run(run: Run) -> dict:
 
     cfg, p = run.cfg, run.params
     names = drone_names() if p.drones is None else list(p.drones)
-    tasks = [(cfg, name, None) for name in names]
+    rows_dir = run.path("rows")   # one file a finished drone or frontier point: a killed run resumes
+    tasks = [(cfg, name, None, rows_dir) for name in names]
     if p.frontier_drone:
-        tasks += [(cfg, p.frontier_drone, tuple(point)) for point in p.frontier]
+        tasks += [(cfg, p.frontier_drone, tuple(point), rows_dir) for point in p.frontier]
     rows = run_spawned(gate_row, tasks, min(int(p.workers), max(1, len(tasks))))
     gates = pd.DataFrame([r for r, t in zip(rows, tasks) if t[2] is None])
     frontier = pd.DataFrame([r for r, t in zip(rows, tasks) if t[2] is not None])
@@ -57,9 +58,21 @@ def run(run: Run) -> dict:
     return metrics
 
 
-def gate_row(cfg, name: str, point: tuple | None, report=None) -> dict:
+def gate_row(cfg, name: str, point: tuple | None, rows_dir, report=None) -> dict:
     """One drone's gates (or, with ``point`` = (basis, modal_derivatives, cubature), one point of
-    the frontier: the flights and the speed only)."""
+    the frontier: the flights and the speed only), kept in ``rows_dir`` (read back if there)."""
+    import json
+    from sdexp.cache import atomic_write
+    path = rows_dir / (f"{name}.json" if point is None else f"{name}_frontier_{'_'.join(map(str, point))}.json")
+    if path.exists():
+        return json.loads(path.read_text())
+    row = _gate_row(cfg, name, point)
+    rows_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda tmp: tmp.write_text(json.dumps(row, default=float)))
+    return row
+
+
+def _gate_row(cfg, name: str, point: tuple | None) -> dict:
     from sdexp.eval.bench_sim import drone_config
     from sdexp.sim.drone import build_drone
     from sdexp.sim.physics.modes import free_frequencies
@@ -83,6 +96,8 @@ def gate_row(cfg, name: str, point: tuple | None, report=None) -> dict:
         row.update(static_errors(drone, model, float(sim.gravity), float(p.bend_load)))
         row.update(energy_drifts(drone, model, float(p.energy_seconds)))
         row.update(verdict(row))
+    row = {k: (bool(v) if isinstance(v, (bool, np.bool_)) else v.item() if isinstance(v, np.generic) else v)
+           for k, v in row.items()}
     log.info(f"  {name}{'' if point is None else f' {point}'}: " + ", ".join(
         f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items() if k != "drone"))
     return row

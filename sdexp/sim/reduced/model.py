@@ -192,7 +192,11 @@ class ReducedModel:
         self.elements, self.weights = arrays["elements"], arrays["weights"]
         self.cubature_error, self.captured = float(arrays["cubature_error"]), float(arrays["captured"])
         self.build_seconds = float(arrays["build_seconds"])
+        # the validated range: the snapshots' range of each coordinate x range_margin, at least a tenth
+        # of the widest one's (the principal components' tail spans next to nothing in the snapshots,
+        # and the stiff bunny's left it in one step of an ordinary flight)
         span = arrays["z_hi"] - arrays["z_lo"]
+        span = np.maximum(span, 0.1 * span.max())
         mid = 0.5 * (arrays["z_hi"] + arrays["z_lo"])
         self.z_lo = mid - 0.5 * spec.range_margin * span
         self.z_hi = mid + 0.5 * spec.range_margin * span
