@@ -153,13 +153,16 @@ def energy_drift(drone, cfg, overrides: dict, seconds: float, seed: int, excite:
     """Largest |E - E0| / E0 of an undamped free vibration with no thrust and no gravity, where
     the continuum conserves E (kinetic with the inertial mass, plus the co-rotated strain energy)
     and symplectic Euler keeps it bounded: its drift is the integrator's and the forces' error.
-    The start: the float64 drone after ``excite`` s of random holds (deformed, spinning)."""
+    The start: the float64 drone after ``excite`` s of random holds (deformed, spinning). A body
+    that blows up on the way (a substep past the stable one) has drifted without bound: inf."""
     noise = replace(cfg.noise, enabled=False)
     base = Simulator(drone, cfg.sim, noise, seed)
     rng = np.random.default_rng(seed)
     hold = _hold(rng, drone)
     for _ in range(int(round(excite / cfg.sim.control_dt))):
         base.step(hold)
+    if not base.alive:
+        return float("inf")
     sim = Simulator(drone, replace(cfg.sim, **overrides), noise, seed)
     sim.body.x[:], sim.body.v[:], sim.body.q[:] = base.body.x, base.body.v, base.body.q
     body, fem = sim.body, sim.fem
@@ -169,6 +172,8 @@ def energy_drift(drone, cfg, overrides: dict, seconds: float, seed: int, excite:
     e0, worst = energy(), 0.0
     for _ in range(int(round(seconds / cfg.sim.control_dt))):
         body.run(sim.n_sub, sim.dt)
+        if not np.all(np.isfinite(body.x)):
+            return float("inf")
         worst = max(worst, abs(energy() - e0))
     return worst / e0
 

@@ -34,3 +34,4 @@ def test_a_gate_that_fails_says_why_with_its_numbers():
     assert "frequencies" not in v["why"] and "energy" not in v["why"]
     row.update(bend_error=0.0, deformation_error=0.01, left_range=0)
     assert verdict(row) == {"passes": True, "why": ""}
+
