@@ -35,3 +35,10 @@ def test_a_gate_that_fails_says_why_with_its_numbers():
     row.update(bend_error=0.0, deformation_error=0.01, left_range=0)
     assert verdict(row) == {"passes": True, "why": ""}
 
+
+
+def test_a_recipe_is_judged_on_its_own_flights():
+    row = {"freq_error": 0.0, "bend_error": 0.0, "compliance_error": 0.0, "deformation_error": 0.5,
+           "imu_deformation_error": 0.5, "left_range": 1, "energy_drift_full": 0.0, "energy_drift_reduced": 0.0,
+           "near_hover_deformation_error": 0.03, "near_hover_imu_deformation_error": 0.04, "near_hover_left_range": 0}
+    assert not verdict(row)["passes"] and verdict(row, "near_hover")["passes"]

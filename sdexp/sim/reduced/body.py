@@ -28,12 +28,6 @@ def _no_forces(step, reps):   # stands in where no compiler works (the numba ker
 
 
 @nb.njit(inline="always")
-def _vec(A):
-    """The axial vector of A: vec(u v^T) = u x v."""
-    return np.array([A[1, 2] - A[2, 1], A[2, 0] - A[0, 2], A[0, 1] - A[1, 0]])
-
-
-@nb.njit(inline="always")
 def _cross(a, b):
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 

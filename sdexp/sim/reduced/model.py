@@ -34,7 +34,6 @@ from sdexp.sim.reduced.snapshots import NEAR_HOVER, PAPER, flights
 log = logging.getLogger(__name__)
 
 REDUCED_FORMAT = 6   # bump when what build_reduced makes changes
-TRAIN_ON_REMAINDER = bool(int(__import__("os").environ.get("SDEXP_G", "1")))
 POSES = 200          # flight poses the cubature is fitted on
 
 
@@ -160,9 +159,8 @@ def _make(drone: Drone, spec: ReducedSpec, gravity: float, control_dt: float) ->
     for z in Z[:: max(1, len(Z) // POSES)]:
         u = (Phi @ z).reshape(X.shape)
         scale = amp / max(np.abs(u).max(), 1e-300)
-        g = reduced_element_forces(forces, Phi3, X + u)
-        if TRAIN_ON_REMAINDER:
-            g = g - reduced_element_forces(linear, Phi3, X + scale * u) / scale
+        g = (reduced_element_forces(forces, Phi3, X + u)
+             - reduced_element_forces(linear, Phi3, X + scale * u) / scale)   # the remainder g_e
         blocks.append(g / (np.linalg.norm(g.sum(axis=0)) + 1e-300))
     # and small motions along every basis vector, weighted as much as the flight poses together: a
     # cubature free to miss the rest stiffness picks a few heavy elements that stiffen as they turn
@@ -173,8 +171,8 @@ def _make(drone: Drone, spec: ReducedSpec, gravity: float, control_dt: float) ->
     log.info(f"reduced model of {drone.name}: basis and {len(blocks)} training poses at {time.perf_counter() - t0:.1f} s")
     elements, weights, err = greedy_nnls(blocks, spec.cubature, spec.tolerance)
     log.info(f"reduced model of {drone.name}: cubature at {time.perf_counter() - t0:.1f} s")
-    return {"Phi": Phi, "stiffness": Phi.T @ (K @ Phi), "elements": elements, "weights": weights, "z_lo": Z.min(axis=0), "z_hi": Z.max(axis=0),
-            "cubature_error": np.array(err), "captured": np.array(captured), "frequencies": freqs[:L],
+    return {"Phi": Phi, "stiffness": Phi.T @ (K @ Phi), "elements": elements, "weights": weights,
+            "z_lo": Z.min(axis=0), "z_hi": Z.max(axis=0), "cubature_error": np.array(err), "captured": np.array(captured), "frequencies": freqs[:L],
             "snapshots": np.array(len(Z))}
 
 
