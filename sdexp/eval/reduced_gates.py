@@ -132,12 +132,14 @@ def verdict(row: dict, recipe: str | None = None) -> dict:
 
 def static_errors(drone, model, gravity: float, load: float) -> dict:
     """validate_fem's load, linear statics: the full model's solve and the reduced one's
-    (Phi K_r^-1 Phi^T fb), each measured as validate_fem measures it."""
+    (Phi K_r^-1 Phi^T fb, K_r the step's rest stiffness: the cubature's), each measured as
+    validate_fem measures it."""
     from sdexp.eval.convergence import balanced, bend_and_compliance, fixed_load, static_displacement
     fem = drone.fem
     fb = balanced(fem, fixed_load(drone, gravity, load))
     full = bend_and_compliance(drone, fb, static_displacement(fem, fb))
-    u = (model.Phi @ np.linalg.solve(model.K, model.Phi.T @ fb.ravel())).reshape(fem.rest.shape)
+    from sdexp.sim.reduced.body import reduced_stiffness
+    u = (model.Phi @ np.linalg.solve(reduced_stiffness(model), model.Phi.T @ fb.ravel())).reshape(fem.rest.shape)
     red = bend_and_compliance(drone, fb, u)
     return {f"{k}_error": red[k] / full[k] - 1 if np.isfinite(full[k]) and full[k] != 0 else float("nan")
             for k in ("bend", "compliance")}

@@ -16,8 +16,8 @@ def test_reduced_gates_run_shrunk_on_the_rod(tmp_path, cache_dir):
     metrics = run_experiment(cfg, tmp_path)
     gates = pd.read_csv(tmp_path / "gates.csv")
     row = gates.iloc[0]
-    # the exact rest stiffness: frequencies and linear statics are the basis's own
-    assert row["freq_error"] < 1e-6 and abs(row["compliance_error"]) < 0.02
+    # the cubature's rest stiffness fitted on small motions along every basis vector
+    assert row["freq_error"] < 0.1 and abs(row["compliance_error"]) < 0.2   # 40 of the 96 elements
     assert 0 <= row["deformation_error"] < 1 and row["realtime_reduced"] > 0 and row["substeps_reduced"] < row["substeps_full"]
     assert row["passes"] == (row["why"] != row["why"] or row["why"] == "")   # a reason exactly when it fails
     assert metrics["rod_passes"] == bool(row["passes"])

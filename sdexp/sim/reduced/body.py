@@ -88,7 +88,7 @@ def _internal(forces, step, sub_x, sub_fbuf, kernel, z, cub_X, cub_Phi, elems, B
 def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, zd, dim, total_mass, gravity,
             scale, keep, cub_X, cub_Phi, elems, Bm, vol, mu, lam, cq, fbuf,
             rot_X, rot_Phi, faces, face_ptr, verts, vert_ptr, weights, thrust, dirs,
-            S0, P, Q, a, Kc, F_world, tau_ext, fz_ext, real):
+            S0, P, Q, a, F_world, tau_ext, fz_ext, real):
     """n_sub substeps; returns (the most inverted cubature elements in a substep, the largest
     squared speed of a rotor patch's node after them; an approximation: the deformation's part of
     rho in w x rho is left out). State arrays (c, v, quat, w, z, zd) are updated in place."""
@@ -99,7 +99,6 @@ def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, 
     rho = np.empty(cub_Phi.shape[0])
     fz = np.empty(r)
     fr = np.empty(r)
-    lin = np.empty(r)
     rho_r = np.empty((nr, 3))
     frot = np.zeros((nr, 3))
     T = np.empty((r, 3, 3))
@@ -139,7 +138,6 @@ def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, 
                 tau[1] += rho_r[i, 2] * fx - rho_r[i, 0] * fzz
                 tau[2] += rho_r[i, 0] * fy - rho_r[i, 1] * fx
         _mtv(rot_Phi, frot.reshape(-1), fr)
-        _mv(Kc, z, lin)
         # the inertia's polynomials in z (sdexp.sim.reduced.model)
         _mv(Q, z, T.reshape(-1))
         _mv(Q, zd, T2.reshape(-1))
@@ -161,7 +159,7 @@ def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, 
             B[2, j] = a[j, 0, 1] - a[j, 1, 0] + T[j, 1, 0] - T[j, 0, 1]
             cor = (w[0] * (T2[j, 2, 1] - T2[j, 1, 2]) + w[1] * (T2[j, 0, 2] - T2[j, 2, 0])
                    + w[2] * (T2[j, 1, 0] - T2[j, 0, 1]))
-            rhs_z[j] = fz[j] - lin[j] + fr[j] + fz_ext[j] - acc - 2.0 * cor
+            rhs_z[j] = fz[j] + fr[j] + fz_ext[j] - acc - 2.0 * cor
         I = np.trace(S) * eye - S
         rhs_w = tau - _cross(w, I @ w) - 2.0 * (np.trace(W) * w - W @ w)
         y = rhs_w - B @ rhs_z
@@ -213,33 +211,26 @@ def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, 
     return worst, vmax2
 
 
-def cubature_forces(model: ReducedModel, z: np.ndarray, iterations: int = 8, exact_linear: bool = True) -> np.ndarray:
-    """The reduced internal force at z as the step computes it, its rotations converged from rest:
-    the cubature's, with its rest stiffness replaced by the exact one (``exact_linear``)."""
-    body = ReducedBody(model) if exact_linear else ReducedBody(model, correct=False)
+def cubature_forces(model: ReducedModel, z: np.ndarray, iterations: int = 8) -> np.ndarray:
+    """The reduced internal force at z as the step computes it, its rotations converged from rest."""
+    body = ReducedBody(model)
     for _ in range(iterations):
         f, _ = body.internal(np.asarray(z, float))
     return f
 
 
-def reduced_stiffness(model: ReducedModel, eps: float = 1e-6, exact_linear: bool = True) -> np.ndarray:
-    """The reduced stiffness at rest (r, r) of the step's internal force, by central differences."""
-    K = np.zeros((model.r, model.r))
-    h = eps * np.ptp(model.X, axis=0).max()
-    for j in range(model.r):
-        z = np.zeros(model.r)
-        z[j] = h
-        K[:, j] = -(cubature_forces(model, z, exact_linear=exact_linear)
-                    - cubature_forces(model, -z, exact_linear=exact_linear)) / (2 * h)
-    return 0.5 * (K + K.T)
-
-
-def linear_correction(model: ReducedModel) -> np.ndarray:
-    """K_r - K_cub: what the step adds to the cubature's force so that its rest stiffness is the
-    exact Phi^T K Phi (sdexp.sim.reduced.model), remembered on the model."""
-    if not hasattr(model, "_correction"):
-        model._correction = np.ascontiguousarray(model.K - reduced_stiffness(model, exact_linear=False))
-    return model._correction
+def reduced_stiffness(model: ReducedModel, eps: float = 1e-6) -> np.ndarray:
+    """The reduced stiffness at rest (r, r) of the step's internal force, by central differences;
+    remembered on the model."""
+    if not hasattr(model, "_stiffness"):
+        K = np.zeros((model.r, model.r))
+        h = eps * np.ptp(model.X, axis=0).max()
+        for j in range(model.r):
+            z = np.zeros(model.r)
+            z[j] = h
+            K[:, j] = -(cubature_forces(model, z) - cubature_forces(model, -z)) / (2 * h)
+        model._stiffness = 0.5 * (K + K.T)
+    return model._stiffness
 
 
 def frequencies(model: ReducedModel, k: int = 8) -> np.ndarray:
@@ -251,13 +242,13 @@ def frequencies(model: ReducedModel, k: int = 8) -> np.ndarray:
 def stable_substep(model: ReducedModel, safety: float) -> float:
     """safety x 2 / omega_max of the reduced stiffness at rest (symplectic Euler's limit, with
     the full model's 5% margin)."""
-    return safety * 2.0 / float(np.sqrt(1.05 * max(np.linalg.eigvalsh(model.K)[-1], 1e-12)))
+    return safety * 2.0 / float(np.sqrt(1.05 * max(np.linalg.eigvalsh(reduced_stiffness(model))[-1], 1e-12)))
 
 
 class ReducedBody:
     """The state of one reduced body and the call that advances it (integrator.Body's role)."""
 
-    def __init__(self, model: ReducedModel, precision: str = "float64", correct: bool = True):
+    def __init__(self, model: ReducedModel, precision: str = "float64"):
         self.model = m = model
         self.fem = model.drone.fem
         self.dim = m.dim
@@ -278,7 +269,6 @@ class ReducedBody:
         self.fext = np.zeros_like(self.fem.rest)   # effects' external forces, world frame (nv, dim)
         self._kernel = kernels().linear_3d(PRECISIONS[precision])
         self._bind_forces(precision)
-        self._correction = linear_correction(model) if correct else np.zeros((m.r, m.r))
         self._version = 0
         self._full = (-1, None, None)
 
@@ -306,7 +296,7 @@ class ReducedBody:
         inverted = _internal(self._forces, self._step, self._sub.x, self._sub.fbuf, self._kernel, z, m.cub_X,
                              self.cub_Phi, m.cub_elems, self._Bm, self._vol, self.fem.mu, self.fem.lam,
                              self.cq, self.fbuf, np.empty(m.cub_Phi.shape[0]), fz, self.real)
-        return fz - self._correction @ z, inverted
+        return fz, inverted
 
     @property
     def dirs(self) -> np.ndarray:
@@ -424,7 +414,7 @@ class ReducedBody:
                                self.fem.mu, self.fem.lam, self.cq, self.fbuf,
                                m.rot_X, self.rot_Phi, m.rot_faces, m.drone.rotors.face_ptr,
                                m.rot_verts, m.drone.rotors.vert_ptr, m.drone.rotors.weights, self.thrust, self._dirs,
-                               m.S0, m.P, m.Q, m.a, self._correction, F_world, tau, fz, self.real)
+                               m.S0, m.P, m.Q, m.a, F_world, tau, fz, self.real)
         self._version += 1
         return worst, vmax2
 
