@@ -147,7 +147,10 @@ class Simulator:
         gets the same draws whatever ran before."""
         self._new_body()
         if position is not None:
-            self.body.translate(np.asarray(position, dtype=float))
+            if self.reduced is not None:
+                self.body.translate(np.asarray(position, dtype=float))
+            else:
+                self.body.x += np.asarray(position, dtype=float)
         self.flight = self.flight + 1 if flight is None else int(flight)
         if self._start:
             rng = np.random.default_rng([abs(int(self.seed)), self.flight]) if self.draws else None
@@ -244,7 +247,9 @@ class Simulator:
 
     def _advance(self, thrust: np.ndarray) -> None:
         body = self.body
-        before = body.copy_state()
+        # the last sane state, kept for the readings after a failure (the reduced body's is its
+        # frame and coordinates; the full one's is read as any Body's, the bitwise test's old one too)
+        before = body.copy_state() if self.reduced is not None else (body.x.copy(), body.v.copy())
         inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity,
                                    self.drone.deformation_damping)
         self.t += self.cfg.control_dt
@@ -269,4 +274,7 @@ class Simulator:
             if reason == "left_reduced_range":
                 log.warning(f"sim.model = reduced, drone {self.drone.name}: the flight left the reduced model's "
                             f"validated range at t = {self.t:.2f} s ({detail}); ended as a failure")
-            body.restore(before)  # keep the last sane state for readings
+            if self.reduced is not None:
+                body.restore(before)
+            else:
+                body.x[:], body.v[:] = before

@@ -96,16 +96,6 @@ class Body:
             el = blocked(el, b)
         return q, (el, blocked(Bm.reshape(f.n_elems, 9), b), blocked(vol, b))
 
-    def copy_state(self) -> tuple:
-        """What ``restore`` puts back: positions and velocities."""
-        return self.x.copy(), self.v.copy()
-
-    def restore(self, state: tuple) -> None:
-        self.x[:], self.v[:] = state
-
-    def translate(self, offset) -> None:
-        self.x += offset
-
     def set_rotation(self, q) -> None:
         """Every element's warm-start rotation to the quaternion q (w, x, y, z)."""
         if self.q.ndim == 3:
