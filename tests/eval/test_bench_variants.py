@@ -1,4 +1,6 @@
 """bench_sim's variant rows (sdexp.eval.bench_variants)."""
+
+
 def test_bench_sims_energy_check_reports_a_blown_up_body_as_unbounded_drift(cache_dir):
     """experiment=bench_sim drone=rod sim.substep=0.01 ended in numpy's 'SVD did not converge'
     inside the energy check; a substep past the stable one is a diverged row (drift inf)."""
