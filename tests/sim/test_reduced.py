@@ -125,3 +125,11 @@ def test_what_the_reduced_model_cannot_carry_is_refused_by_name(plate, override,
     drone, _ = plate
     with pytest.raises(UserError, match=key):
         Simulator(drone, sim_cfg(model="reduced", **override), noise_cfg(enabled=False))
+
+
+def test_the_plain_spec_has_the_configs_defaults():
+    from dataclasses import fields
+    from sdexp.config import ReducedConfig
+    from sdexp.sim.reduced.model import spec_of
+    assert spec_of(ReducedConfig()) == ReducedSpec()
+    assert {f.name for f in fields(ReducedConfig)} <= {f.name for f in fields(ReducedSpec)}

@@ -13,7 +13,7 @@ import ctypes
 import numba as nb
 import numpy as np
 
-from sdexp.sim.physics.fem import PRECISIONS, FemModel, kernels, rest_quaternions
+from sdexp.sim.physics.fem import PRECISIONS, FemModel, kernels
 from sdexp.sim.physics.integrator import Body
 from sdexp.sim.physics.reference import element_forces
 from sdexp.sim.reduced.model import ReducedModel

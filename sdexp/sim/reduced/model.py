@@ -24,10 +24,10 @@ import numpy as np
 from sdexp.cache import cached_arrays, content_digest, key_of
 from sdexp.errors import UserError
 from sdexp.sim.drone import Drone
+from sdexp.sim.physics.fem import FemModel, elastic_forces, rest_quaternions
 from sdexp.sim.physics.modes import free_modes, stiffness
 from sdexp.sim.reduced.basis import (best_fit_frame, centred_rest, deformation_basis, deformations, modal_derivatives,
                                     static_responses)
-from sdexp.sim.physics.fem import FemModel, elastic_forces, rest_quaternions
 from sdexp.sim.reduced.cubature import ElementForces, greedy_nnls, reduced_element_forces
 from sdexp.sim.reduced.snapshots import NEAR_HOVER, PAPER, flights
 
@@ -39,16 +39,17 @@ POSES = 200          # flight poses the cubature is fitted on
 
 @dataclass(frozen=True)
 class ReducedSpec:
-    """sim.reduced, as plain values (sdexp.config.ReducedConfig is the user's side)."""
-    basis: int = 48
+    """sim.reduced, as plain values (sdexp.config.ReducedConfig is the user's side, with the same
+    defaults and what each means)."""
+    basis: int = 64
     linear_modes: int = 12
-    cubature: int = 160
+    cubature: int = 200
     tolerance: float = 0.01
     snapshot_seconds: float = 40.0
     range_margin: float = 1.5
     seed: int = 0
     rotor_statics: bool = True
-    modal_derivatives: int = 0   # the first this many linear modes' modal derivatives join the basis
+    modal_derivatives: int = 4
 
 
 def spec_of(cfg) -> ReducedSpec:
