@@ -167,7 +167,8 @@ def flight_errors(cfg, drone, spec, recipes, seeds, seconds: float) -> dict:
     t_full, t_red, sim_seconds = 0.0, 0.0, 0.0
     steps = int(round(seconds / cfg.sim.control_dt))
     for recipe in recipes:
-        for k in ("deformation_error", "imu_deformation_error", "left_range", "flown_seconds"):
+        for k in ("deformation_error", "imu_deformation_error", "imu_angle_error_deg", "imu_position_error",
+                  "left_range", "flown_seconds"):
             out[f"{recipe}_{k}"] = 0
         for seed in seeds:
             u_seq = holds(drone, RECIPES[recipe], steps, np.random.default_rng(seed), cfg.sim.gravity, cfg.sim.control_dt)
@@ -190,9 +191,10 @@ def flight_errors(cfg, drone, spec, recipes, seeds, seconds: float) -> dict:
                     n = mass[:, None] * uf ** 2
                     num += [e.sum(), e[imu].sum()]
                     den += [n.sum(), n[imu].sum()]
-                    out["imu_angle_error_deg"] = max(out["imu_angle_error_deg"], _angle_error(rf, rr))
-                    out["imu_position_error"] = max(out["imu_position_error"],
-                                                    float(np.abs(np.asarray(rf.pos) - np.asarray(rr.pos)).max()))
+                    for name, e in (("imu_angle_error_deg", _angle_error(rf, rr)),
+                                    ("imu_position_error", float(np.abs(np.asarray(rf.pos) - np.asarray(rr.pos)).max()))):
+                        out[name] = max(out[name], e)
+                        out[f"{recipe}_{name}"] = max(out[f"{recipe}_{name}"], e)
             left = int(red.failure is not None and red.failure.reason == "left_reduced_range")
             err = np.sqrt(num / np.maximum(den, 1e-300))
             out[f"{recipe}_left_range"] += left
