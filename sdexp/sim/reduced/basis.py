@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sdexp.sim.physics.modes import rigid_modes
+
 
 def centred_rest(rest: np.ndarray, mass: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(X, com): the rest shape about its centre of mass and that centre."""
@@ -43,15 +45,9 @@ def deformations(xs: np.ndarray, X: np.ndarray, mass: np.ndarray) -> np.ndarray:
 
 
 def rigid_basis(X: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """Mass-orthonormal translations and infinitesimal rotations about the centre of mass,
-    (nv d, 6 | 3)."""
-    nv, d = X.shape
-    cols = [np.tile(e, nv) for e in np.eye(d)]
-    if d == 3:
-        cols += [np.cross(e, X).ravel() for e in np.eye(3)]
-    else:
-        cols.append(np.c_[-X[:, 1], X[:, 0]].ravel())
-    return mass_orthonormal(np.stack(cols, 1), np.repeat(mass, d))
+    """Mass-orthonormal translations and infinitesimal rotations, (nv d, 6 | 3) (modes.rigid_modes'
+    span: about which point the rotations turn does not change it)."""
+    return mass_orthonormal(rigid_modes(X), np.repeat(mass, X.shape[1]))
 
 
 def mass_orthonormal(V: np.ndarray, m: np.ndarray, against: np.ndarray | None = None,

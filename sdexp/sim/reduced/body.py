@@ -15,7 +15,8 @@ import numpy as np
 
 from sdexp.sim.physics.fem import PRECISIONS, FemModel, kernels
 from sdexp.sim.physics.integrator import Body
-from sdexp.sim.physics.reference import element_forces
+from sdexp.sensing.rotations import matrix_from_quat, quat_from_matrix
+from sdexp.sim.physics.reference import element_forces, rotation
 from sdexp.sim.reduced.model import ReducedModel
 
 # kernels.c's forces_only(Step *, reps) with the Step passed as an address, so numba can call it
@@ -34,10 +35,8 @@ def _cross(a, b):
 
 @nb.njit(cache=True)
 def quat_matrix(q):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    """The rotation matrix of the unit quaternion q (w, x, y, z): the force kernels' ``rotation``."""
+    return np.array(rotation(q[0], q[1], q[2], q[3], np.float64)).reshape(3, 3)
 
 
 @nb.njit(cache=True, fastmath=True)
@@ -211,24 +210,22 @@ def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, 
     return worst, vmax2
 
 
-def cubature_forces(model: ReducedModel, z: np.ndarray, iterations: int = 8) -> np.ndarray:
-    """The reduced internal force at z as the step computes it, its rotations converged from rest."""
-    body = ReducedBody(model)
-    for _ in range(iterations):
-        f, _ = body.internal(np.asarray(z, float))
-    return f
-
-
-def reduced_stiffness(model: ReducedModel, eps: float = 1e-6) -> np.ndarray:
-    """The reduced stiffness at rest (r, r) of the step's internal force, by central differences;
-    remembered on the model."""
+def reduced_stiffness(model: ReducedModel, eps: float = 1e-6, iterations: int = 4) -> np.ndarray:
+    """The reduced stiffness at rest (r, r) of the step's internal force, by central differences
+    (one body: its element rotations stay at rest's within eps); remembered on the model."""
     if not hasattr(model, "_stiffness"):
+        body = ReducedBody(model)
+
+        def force(z):
+            for _ in range(iterations):
+                f, _ = body.internal(z)
+            return f
         K = np.zeros((model.r, model.r))
         h = eps * np.ptp(model.X, axis=0).max()
         for j in range(model.r):
             z = np.zeros(model.r)
             z[j] = h
-            K[:, j] = -(cubature_forces(model, z) - cubature_forces(model, -z)) / (2 * h)
+            K[:, j] = -(force(z) - force(-z)) / (2 * h)
         model._stiffness = 0.5 * (K + K.T)
     return model._stiffness
 
@@ -324,7 +321,7 @@ class ReducedBody:
     # ------------------------------------------------------------------ the state as the full mesh's
     @property
     def R(self) -> np.ndarray:
-        return quat_matrix(self.quat)
+        return matrix_from_quat(self.quat)
 
     def nodes(self, X3: np.ndarray, Phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World positions and velocities (n, dim) of the nodes with rest rows X3 (n, 3) and basis
@@ -338,9 +335,7 @@ class ReducedBody:
     def _whole(self):
         if self._full[0] != self._version:
             m = self.model
-            X3 = np.zeros((len(m.X), 3))
-            X3[:, :m.dim] = m.X
-            x, v = self.nodes(X3, m.Phi3.reshape(-1, m.r))
+            x, v = self.nodes(m.X3, m.Phi3.reshape(-1, m.r))
             self._full = (self._version, x, v)
         return self._full
 
@@ -374,9 +369,7 @@ class ReducedBody:
         rel = np.zeros((len(mass), 3))
         rel[:, :d] = v - vc
         rel = rel @ R3                                               # body frame
-        X3 = np.zeros((len(mass), 3))
-        X3[:, :d] = m.X
-        rho = X3 + m.Phi3 @ z
+        rho = m.X3 + m.Phi3 @ z
         cols = [np.cross(np.eye(3)[a], rho) for a in range(3)] if d == 3 else [np.cross([0.0, 0.0, 1.0], rho)]
         G = np.concatenate([np.stack(cols, axis=-1), m.Phi3], axis=-1)   # (nv, 3, k + r)
         A = np.einsum("i,iak,ial->kl", mass, G, G)
@@ -388,7 +381,6 @@ class ReducedBody:
 
     def place(self, c, R, z, v=None, w=None, zd=None) -> None:
         """Set the state: centre of mass c, rotation R, modal coordinates z and their rates."""
-        from sdexp.sensing.rotations import quat_from_matrix
         d = self.dim
         self.c[:] = 0.0
         self.c[:d] = c
@@ -429,8 +421,6 @@ class ReducedBody:
         f = np.zeros((len(rows), 3))
         f[:, :self.dim] = self.fext[rows]
         fb = f @ self.R                                           # body frame: R^T f
-        X3 = np.zeros((len(rows), 3))
-        X3[:, :self.dim] = m.X[rows]
         Phi = m.Phi3[rows]                                        # (k, 3, r)
-        rho = X3 + Phi @ self.z
+        rho = m.X3[rows] + Phi @ self.z
         return f.sum(axis=0), np.cross(rho, fb).sum(axis=0), np.einsum("kar,ka->r", Phi, fb)

@@ -131,13 +131,13 @@ def _make(drone: Drone, spec: ReducedSpec, gravity: float, control_dt: float) ->
     X, _ = centred_rest(fem.rest, mass)
     half = spec.snapshot_seconds / 2
     t0 = time.perf_counter()
-    xs = np.concatenate([flights(drone, NEAR_HOVER, half, spec.seed, gravity, control_dt)[0],
-                         flights(drone, PAPER, half, spec.seed + 1, gravity, control_dt)[0]])
+    xs = np.concatenate([flights(drone, NEAR_HOVER, half, spec.seed, gravity, control_dt),
+                         flights(drone, PAPER, half, spec.seed + 1, gravity, control_dt)])
     log.info(f"reduced model of {drone.name}: {len(xs)} snapshots in {time.perf_counter() - t0:.1f} s")
     U = deformations(xs, X, mass)
     L = min(spec.linear_modes, spec.basis)
     K = stiffness(fem)
-    freqs, modes = free_modes(fem, k=max(L, 1), K=K)
+    _, modes = free_modes(fem, k=max(L, 1), K=K)
     # each rotor's and each spin's quasi-static response: the local bending under a patch and the
     # centrifugal stretch that the snapshots' principal components hold in the mass norm but a
     # Galerkin model needs in its own span (without them a spinning plate stretches 20% too little)
@@ -174,9 +174,8 @@ def _make(drone: Drone, spec: ReducedSpec, gravity: float, control_dt: float) ->
     log.info(f"reduced model of {drone.name}: basis and {len(blocks)} training poses at {time.perf_counter() - t0:.1f} s")
     elements, weights, err = greedy_nnls(blocks, spec.cubature, spec.tolerance)
     log.info(f"reduced model of {drone.name}: cubature at {time.perf_counter() - t0:.1f} s")
-    return {"Phi": Phi, "stiffness": Phi.T @ (K @ Phi), "elements": elements, "weights": weights,
-            "z_lo": Z.min(axis=0), "z_hi": Z.max(axis=0), "cubature_error": np.array(err), "captured": np.array(captured), "frequencies": freqs[:L],
-            "snapshots": np.array(len(Z))}
+    return {"Phi": Phi, "elements": elements, "weights": weights, "z_lo": Z.min(axis=0), "z_hi": Z.max(axis=0),
+            "cubature_error": np.array(err), "captured": np.array(captured)}
 
 
 class ReducedModel:
@@ -186,12 +185,11 @@ class ReducedModel:
         fem = drone.fem
         self.drone, self.spec, self.dim = drone, spec, fem.dim
         self.Phi = np.ascontiguousarray(arrays["Phi"])
-        self.K = 0.5 * (arrays["stiffness"] + arrays["stiffness"].T)   # Phi^T K Phi (the cubature's: body.reduced_stiffness)
         self.r = r = self.Phi.shape[1]
         self.X, self.com = centred_rest(fem.rest, fem.mass)
         self.total_mass = float(fem.mass.sum())
         self.elements, self.weights = arrays["elements"], arrays["weights"]
-        self.cubature_error, self.captured = float(arrays["cubature_error"]), float(arrays["captured"])
+        self.cubature_error = float(arrays["cubature_error"])
         self.build_seconds = float(arrays["build_seconds"])
         # the validated range: the snapshots' range of each coordinate x range_margin, at least a tenth
         # of the widest one's (the principal components' tail spans next to nothing in the snapshots,
@@ -206,7 +204,7 @@ class ReducedModel:
         P3 = np.zeros((len(self.X), 3, r))
         P3[:, :d] = Phi3
         self.Phi3 = P3
-        X3 = pad3(self.X)
+        self.X3 = X3 = pad3(self.X)   # rest rows in 3D (a zero z for 2D), as the step reads them
         m = fem.mass
         self.S0 = (m[:, None] * X3).T @ X3
         self.P = np.einsum("i,iaj,ib->jab", m, P3, X3)                           # (r, 3, 3)

@@ -48,8 +48,7 @@ def holds(drone: Drone, recipe: Recipe, steps: int, rng: np.random.Generator, gr
 
 def flights(drone: Drone, recipe: Recipe, seconds: float, seed: int, gravity: float = 9.81,
             control_dt: float = 0.01, every: int = 2, safety: float = 0.8):
-    """Positions and velocities every ``every`` control steps of ``seconds`` of open-loop holds:
-    (x (S, nv, dim), v (S, nv, dim)). A state that blows up (inverted element, non-finite,
+    """Positions (S, nv, dim) every ``every`` control steps of ``seconds`` of open-loop holds. A state that blows up (inverted element, non-finite,
     stretched past 4x) is dropped with its episode's rest."""
     fem = drone.fem
     rng = np.random.default_rng(seed)
@@ -58,7 +57,7 @@ def flights(drone: Drone, recipe: Recipe, seconds: float, seed: int, gravity: fl
     dt = control_dt / n_sub
     per_episode = max(1, int(round(recipe.episode / control_dt)))
     rest_size = extent(fem.rest)
-    xs, vs = [], []
+    xs = []
     steps = int(round(seconds / control_dt))
     k = 0
     while k < steps:
@@ -70,7 +69,6 @@ def flights(drone: Drone, recipe: Recipe, seconds: float, seed: int, gravity: fl
                 break
             if k % every == 0:
                 xs.append(body.x.copy())
-                vs.append(body.v.copy())
             if k >= steps:
                 break
-    return np.array(xs), np.array(vs)
+    return np.array(xs)
