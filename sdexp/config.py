@@ -9,7 +9,6 @@ two keys at once, and names the key and the allowed range.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import hashlib
 import math
 import os
@@ -24,7 +23,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sdexp.cache import KEY_UNLESS_DEFAULT
-from sdexp.errors import UserError, one_line
+from sdexp.errors import UserError, did_you_mean, one_line
 from sdexp.ranges import at_least, between, check_fields, choices, nonnegative, param, positive, ranged
 
 
@@ -424,9 +423,8 @@ def _fields(cls) -> dict[str, Any]:
 
 
 def _schema_error(key: str, names: list[str], where: str) -> UserError:
-    close = difflib.get_close_matches(key.rsplit(".", 1)[-1], names, n=1)
     prefix = key.rsplit(".", 1)[0] + "." if "." in key else ""
-    hint = f" (did you mean {prefix}{close[0]}?)" if close else ""
+    hint = did_you_mean(key.rsplit(".", 1)[-1], names, prefix)
     return UserError(f"{key} is not a config key{hint}: the keys of {where} are {', '.join(sorted(names))}")
 
 
@@ -483,9 +481,7 @@ def unknown_param_error(key: str, params_cls, experiment: str) -> UserError:
         cls = hint
     parent, name = ".".join(parts[:-1]), parts[-1]
     names = sorted(f.name for f in dataclasses.fields(cls)) if cls is not None else []
-    close = difflib.get_close_matches(name, names, n=1)
-    prefix = f"experiment.params.{parent + '.' if parent else ''}"
-    hint = f" (did you mean {prefix}{close[0]}?)" if close else ""
+    hint = did_you_mean(name, names, f"experiment.params.{parent + '.' if parent else ''}")
     what = f"of {experiment}" if not parent else f"of {experiment}'s {parent}"
     return UserError(f"experiment.params.{key} is not a parameter {what}{hint}: allowed {', '.join(names) or 'none'}")
 
