@@ -130,6 +130,9 @@ class ReducedConfig:
     tolerance: float = param(0.01, between(0, 1, "()", "relative error of the cubature's force fit to stop at"))
     snapshot_seconds: float = param(40.0, between(1, 3600, unit="s of full-model flight for the basis and cubature"))
     range_margin: float = param(1.5, between(1, 100, unit="x the snapshots' range of each modal coordinate"))
+    # the rest stiffness among the linear modes made exact (a linear term within their span, set at
+    # load: the low frequencies); false: the cubature's alone
+    exact_modes: bool = True
 
 
 @dataclass
@@ -186,6 +189,10 @@ class DataConfig:
     episode_seconds: float = 30.0   # an episode also ends on a failure or leaving the region
     region: float = param(30.0, positive("m"))   # m from the start beyond which an episode restarts
     workers: int = param(2, at_least(1, **NOT_KEY))   # simulation processes
+    # the simulator the data are made on: null = sim.model (the flights' own) | full | reduced (the
+    # reduced-order model, sim.reduced; the flights stay on sim.model). Keyed through the data's sim
+    # config, which carries the model the data were made on (sdexp.model.dataset.dataset_spec)
+    sim_model: Optional[str] = param(None, choices((None,) + MODELS, **NOT_KEY))
     validation_fraction: float = param(0.1, between(0, 1, "()"))   # held-out episodes
 
 

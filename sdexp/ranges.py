@@ -73,7 +73,8 @@ def between(low: float, high: float, closed: str = "[]", unit: str = "", **metad
 def choices(values, **metadata) -> dict:
     """One of ``values`` (each item, for a list of names)."""
     values = tuple(values)
-    text = " or ".join(map(str, values)) if len(values) <= 2 else ", ".join(map(str, values[:-1])) + f" or {values[-1]}"
+    names = ["null" if v is None else str(v) for v in values]   # as the user writes it on the command line
+    text = " or ".join(names) if len(names) <= 2 else ", ".join(names[:-1]) + f" or {names[-1]}"
     return {**metadata, "range": Range(lambda v: v in values, text, numbers=False)}
 
 

@@ -102,7 +102,8 @@ def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
         chunk_samples = max(CHUNK_SAMPLES, steps)
     return {
         "drone": cfg.drone,
-        "sim": replace(cfg.sim, obstacles=[]),  # a task's scenery: the data are free flights (supplement F)
+        # a task's scenery left out: the data are free flights (supplement F); on data.sim_model if set
+        "sim": replace(cfg.sim, obstacles=[], model=data.sim_model or cfg.sim.model),
         "noise": cfg.noise,
         "data": data,
         "seed": int(cfg.seed),

@@ -63,10 +63,11 @@ def _mtv(A, y, out):
 
 @nb.njit(cache=True)
 def _internal(forces, step, sub_x, sub_fbuf, kernel, z, cub_X, cub_Phi, elems, Bm, vol, mu, lam, q,
-              fbuf, rho, fz, real):
-    """The cubature's reduced internal force at z into fz; returns the inverted elements. With a
-    compiled ``step`` (kernels.c's Step of the cubature's sub-mesh, as bytes) its forces_only
-    runs on sub_x into sub_fbuf; else the numba kernels on q, fbuf. Rotations warm-started."""
+              fbuf, rho, fz, fix, real):
+    """The cubature's reduced internal force at z into fz, plus the linear modes' stiffness fix
+    (ReducedModel.stiffness_fix); returns the inverted elements. With a compiled ``step``
+    (kernels.c's Step of the cubature's sub-mesh, as bytes) its forces_only runs on sub_x into
+    sub_fbuf; else the numba kernels on q, fbuf. Rotations warm-started."""
     nc, d = cub_X.shape
     _mv(cub_Phi, z, rho)
     if step.shape[0] > 0:
@@ -76,16 +77,21 @@ def _internal(forces, step, sub_x, sub_fbuf, kernel, z, cub_X, cub_Phi, elems, B
             flat[i] = X[i] + rho[i]
         inverted = forces(step.ctypes.data, 1)
         _mtv(cub_Phi, sub_fbuf[0].reshape(-1), fz)
-        return inverted
-    x = cub_X + rho.reshape(nc, d)
-    inverted = element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf, real)
-    _mtv(cub_Phi, fbuf[0].reshape(-1), fz)
+    else:
+        x = cub_X + rho.reshape(nc, d)
+        inverted = element_forces(kernel, x, elems, Bm, vol, mu, lam, q, fbuf, real)
+        _mtv(cub_Phi, fbuf[0].reshape(-1), fz)
+    for i in range(fix.shape[0]):
+        acc = 0.0
+        for j in range(fix.shape[1]):
+            acc += fix[i, j] * z[j]
+        fz[i] += acc
     return inverted
 
 
 @nb.njit(cache=True, fastmath=True)
 def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, zd, dim, total_mass, gravity,
-            scale, keep, cub_X, cub_Phi, elems, Bm, vol, mu, lam, cq, fbuf,
+            scale, keep, cub_X, cub_Phi, elems, Bm, vol, mu, lam, cq, fbuf, fix,
             rot_X, rot_Phi, faces, face_ptr, verts, vert_ptr, weights, thrust, dirs,
             S0, P, Q, a, F_world, tau_ext, fz_ext, real):
     """n_sub substeps; returns (the most inverted cubature elements in a substep, the largest
@@ -106,7 +112,7 @@ def advance(forces, step, sub_x, sub_fbuf, kernel, n_sub, dt, c, v, quat, w, z, 
     for _ in range(n_sub):
         R = quat_matrix(quat)
         worst = max(worst, _internal(forces, step, sub_x, sub_fbuf, kernel, z, cub_X, cub_Phi, elems, Bm,
-                                     vol, mu, lam, cq, fbuf, rho, fz, real))
+                                     vol, mu, lam, cq, fbuf, rho, fz, fix, real))
         # rotors: thrust along each patch's area-weighted normal (body frame), as kernels.c
         _mv(rot_Phi, z, rho_r.reshape(-1))
         rho_r += rot_X
@@ -292,7 +298,7 @@ class ReducedBody:
         fz = np.empty(m.r)
         inverted = _internal(self._forces, self._step, self._sub.x, self._sub.fbuf, self._kernel, z, m.cub_X,
                              self.cub_Phi, m.cub_elems, self._Bm, self._vol, self.fem.mu, self.fem.lam,
-                             self.cq, self.fbuf, np.empty(m.cub_Phi.shape[0]), fz, self.real)
+                             self.cq, self.fbuf, np.empty(m.cub_Phi.shape[0]), fz, m.stiffness_fix, self.real)
         return fz, inverted
 
     @property
@@ -403,7 +409,7 @@ class ReducedBody:
                                self.vel, self.quat, self.w, self.z, self.zd, m.dim, m.total_mass, gravity,
                                1.0 / (1.0 + dt * damping), 1.0 / (1.0 + dt * deform_damping),
                                m.cub_X, self.cub_Phi, m.cub_elems, self._Bm, self._vol,
-                               self.fem.mu, self.fem.lam, self.cq, self.fbuf,
+                               self.fem.mu, self.fem.lam, self.cq, self.fbuf, m.stiffness_fix,
                                m.rot_X, self.rot_Phi, m.rot_faces, m.drone.rotors.face_ptr,
                                m.rot_verts, m.drone.rotors.vert_ptr, m.drone.rotors.weights, self.thrust, self._dirs,
                                m.S0, m.P, m.Q, m.a, F_world, tau, fz, self.real)
