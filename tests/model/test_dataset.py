@@ -355,3 +355,20 @@ def test_the_data_key_is_the_configs_key_fields(tmp_path):
                                         CHUNK)) == dataset_key(spec), other
     mirrored = dataset_spec(small_config(str(tmp_path), "drone=star", "drone.mesh.mirror=[x,z]"), CHUNK)
     assert dataset_key(mirrored) != dataset_key(spec)
+
+
+def test_data_made_on_the_reduced_model_are_keyed_by_the_model_they_were_made_on(tmp_path):
+    """data.sim_model puts the data on another simulator than the flights': the data's sim config
+    carries it, so they are the same data as a run wholly on that model, and other data than
+    the full model's; a wrong name lists the choices as the user writes them."""
+    from sdexp.config import validate
+    base = small_config(str(tmp_path), "drone=star")
+    on_reduced = small_config(str(tmp_path), "drone=star", "data.sim_model=reduced")
+    assert dataset_spec(on_reduced, CHUNK)["sim"].model == "reduced" and on_reduced.sim.model == "full"
+    assert dataset_key(dataset_spec(on_reduced, CHUNK)) == dataset_key(
+        dataset_spec(small_config(str(tmp_path), "drone=star", "sim.model=reduced"), CHUNK))
+    assert dataset_key(dataset_spec(on_reduced, CHUNK)) != dataset_key(dataset_spec(base, CHUNK))
+    assert dataset_key(dataset_spec(small_config(str(tmp_path), "drone=star", "data.sim_model=full"), CHUNK)) \
+        == dataset_key(dataset_spec(base, CHUNK))
+    with pytest.raises(UserError, match=r"data.sim_model = 'reduce'.*null, full or reduced"):
+        validate(small_config(str(tmp_path), "drone=star", "data.sim_model=reduce"))
