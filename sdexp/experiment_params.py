@@ -19,7 +19,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 
-from sdexp.config import ELEMENTS
+from sdexp.config import ELEMENTS, MODELS
 from sdexp.errors import UserError
 from sdexp.ranges import at_least, check_fields, choices, nonnegative, param, positive, ranged
 
@@ -226,10 +226,17 @@ class BenchSimParams(Params):
     variants_seconds: float = param(3.0, positive())      # simulated seconds of each variant's step timing
     deviation_seconds: float = param(5.0, positive())     # the noise-free float32 / float64 flight
     mass_scaling: float = _param(0.005, lambda v: 0 < v <= 0.1, "in (0, 0.1]")   # the scaled variants' budget
+    # the simulators of the drone rows (sim.model's choices): a row per drone, element and model, the
+    # models timed in one process block by block under the same holds; [full, reduced] adds the reduced
+    # model (built with sim.reduced.*) beside the full one, with its speed-up (docs/speed.md)
+    models: List[str] = param(["full"], choices(MODELS))
 
     def check(self) -> None:
         if not set(self.elements) <= set(ELEMENTS):
             raise UserError(f"{PREFIX}elements = {self.elements!r}: allowed a list of {', '.join(ELEMENTS)}")
+        if not self.models or len(set(self.models)) != len(self.models):
+            raise UserError(f"{PREFIX}models = {list(self.models)!r}: allowed a non-empty list of distinct models, "
+                            f"each {' or '.join(MODELS)}")
 
 
 @dataclass

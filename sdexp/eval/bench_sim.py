@@ -2,7 +2,15 @@
 the speed/accuracy frontier of the flower refined. Beside every timing the accuracy it is bought
 with: the IMU bend and the compliance under a fixed load (sdexp.eval.convergence) and their
 errors against the converged body (Richardson over three refined quadratic meshes, cached). Timings are
-printed and written, never asserted; a blow-up during a timing is counted in the CSV."""
+printed and written, never asserted; a blow-up during a timing is counted in the CSV.
+
+``experiment.params.models`` adds the reduced-order model (``sim.model=reduced``, built with
+``sim.reduced.*``) to the drone rows: a row per drone, element and model, the models timed in one
+process block by block under the same thrust holds, the reduced row with its speed-up over the
+full one (the median of the per-block ratios: this VM's neighbours move absolute timings by
+30-50%, ratios of interleaved blocks much less), its cubature's element count and its linear
+statics against the full model's (``sdexp.eval.reduced_gates.static_errors``). A model that
+refuses the config (the reduced one: ground, obstacles, mass scaling) is a row with its reason."""
 from __future__ import annotations
 
 import logging
@@ -13,6 +21,7 @@ import numpy as np
 import pandas as pd
 from sdexp.eval.convergence import converged_response, response_errors
 from sdexp import conf
+from sdexp.errors import UserError
 from sdexp.eval.run import Run
 from sdexp.sim.drone import build_drone, drone_names
 from sdexp.sim.simulator import Simulator
@@ -21,48 +30,139 @@ log = logging.getLogger(__name__)
 
 
 SPEED = ("element_substeps_per_s", "us_per_substep", "realtime_factor", "realtime_factor_best_block")
+# columns that are numbers or null (None where a run blew up or a model refused): NaN in the table
+NUMERIC = (*SPEED, "speedup_vs_full", "step_speedup", "energy_drift")
+
+
+def sim_config(sim_cfg, model: str):
+    """``sim_cfg`` with ``sim.model = model`` (as given where it already is)."""
+    return sim_cfg if getattr(sim_cfg, "model", "full") == model else replace(sim_cfg, model=model)
+
+
+def simulators(drone, cfg, models, seed: int) -> dict:
+    """A Simulator per model, or, for a model that refuses the config (the reduced one: contact,
+    mass scaling, effects that change the model), the refusal's text. The full model's own
+    errors are the config's and raise."""
+    out = {}
+    for model in models:
+        try:
+            out[model] = Simulator(drone, sim_config(cfg.sim, model), cfg.noise, seed)
+        except UserError as err:
+            if model == "full":
+                raise
+            log.warning(f"bench_sim: {drone.name}, sim.model = {model} refused: {err}")
+            out[model] = f"refused: {err}"
+    return out
+
+
+def thrust_holds(drone, steps: int, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The warm-up hold and one hold per control step: random thrust holds, as in data
+    generation (the drone tumbles and deforms), redrawn every 100 steps."""
+    rng = np.random.default_rng(seed)
+    warm = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
+    holds = []
+    for k in range(steps):
+        if k % 100 == 0:
+            hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
+        holds.append(hold)
+    return warm, holds
+
+
+def time_models(drone, drone_cfg, cfg, sims: dict, seconds: float, seed: int, block: int = 25) -> dict[str, dict]:
+    """Wall time of ``seconds`` of simulated flight on each of ``sims`` (a model's Simulator, or
+    its refusal's text: a row with that reason), in blocks of ``block`` control steps, the
+    models' blocks in turn (which goes first alternates) under the same thrust holds: the
+    figures are the median block's (this VM's neighbours move single timings by 30-50%), with
+    the fastest block's beside them; a model beside the full one also gets ``speedup_vs_full``,
+    the median of the per-block ratios. A blow-up resets the drone and is counted; a model
+    that blew up has no speed (null), and no speed-up. A reduced flight that leaves the range
+    its model was fitted on (the holds are the paper's +-Tmax, past where the reduced model is
+    valid: docs/reduced_model.md) is a recorded failure, not a divergence: counted in
+    ``left_range`` and restarted, its speed kept (a substep's cost does not depend on the state;
+    the resets' own time is left out of the blocks)."""
+    live = {m: s for m, s in sims.items() if not isinstance(s, str)}
+    n_blocks = max(1, int(round(seconds / cfg.sim.control_dt)) // block)
+    warm, holds = thrust_holds(drone, n_blocks * block, seed)
+    for sim in live.values():
+        sim.step(warm)   # compile / warm up
+        if not sim.alive:
+            sim.reset()
+    walls = {m: [] for m in live}
+    blowups = {m: [] for m in live}
+    left = {m: [] for m in live}
+    names = list(live)
+    for b in range(n_blocks):
+        for m in (names if b % 2 == 0 else names[::-1]):
+            sim = live[m]
+            resets = 0.0
+            t0 = time.perf_counter()
+            for k in range(b * block, (b + 1) * block):
+                sim.step(holds[k])
+                if not sim.alive:
+                    t1 = time.perf_counter()
+                    reason = sim.failure.reason
+                    (left if reason == "left_reduced_range" else blowups)[m].append(f"{reason} at {sim.t:.2f} s")
+                    sim.reset()
+                    resets += time.perf_counter() - t1
+            walls[m].append(time.perf_counter() - t0 - resets)
+    rows = {}
+    for m, sim in sims.items():
+        if isinstance(sim, str):
+            rows[m] = {**mesh_row(drone, drone_cfg, m), "substep_ms": None, "substeps_per_step": None,
+                       **dict.fromkeys(SPEED), "blowups": None, "blowup_detail": "", "basis": None,
+                       "left_range": None, "speedup_vs_full": None, "reason": sim}
+            continue
+        step_wall = np.median(walls[m]) / block
+        best = min(walls[m]) / block
+        n_el = evaluated_elements(drone, sim)
+        speed = dict(zip(SPEED, (n_el * sim.n_sub / step_wall, 1e6 * step_wall / sim.n_sub,
+                                 cfg.sim.control_dt / step_wall, cfg.sim.control_dt / best)))
+        if blowups[m]:
+            # a diverged run's blocks time blown-up states and resets, not a flight: no speed to report
+            # (null in the CSV, metrics.json and the plot alike), the blow-ups counted instead
+            speed = dict.fromkeys(speed, None)
+        rows[m] = {**stepping(drone, drone_cfg, sim, m), **speed, "blowups": len(blowups[m]),
+                   "blowup_detail": "; ".join(blowups[m] + left[m])}
+        if m != "full":
+            rows[m]["basis"] = int(sim.reduced.r) if getattr(sim, "reduced", None) is not None else None
+            rows[m]["left_range"] = len(left[m])
+            ok = "full" in live and not blowups["full"] and not blowups[m]
+            rows[m]["speedup_vs_full"] = float(np.median(np.array(walls["full"]) / np.array(walls[m]))) if ok else None
+    return rows
 
 
 def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25) -> dict:
-    """Wall time of ``seconds`` of simulated flight, timed in blocks of ``block`` control steps:
-    the figures are the median block's (this VM's neighbours move single timings by 30-50%),
-    with the fastest block's beside them. A blow-up resets the drone and is counted."""
-    sim = Simulator(drone, cfg.sim, cfg.noise, seed)
-    rng = np.random.default_rng(seed)
-    # random thrust holds, as in data generation: the drone tumbles and deforms
-    hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
-    sim.step(hold)  # compile / warm up
-    steps = max(block, int(round(seconds / cfg.sim.control_dt)))
-    walls, blowups = [], []
-    for k in range(steps):
-        if k % block == 0:
-            t0 = time.perf_counter()
-        if k % 100 == 0:
-            hold = rng.uniform(-1, 1, drone.num_rotors) * drone.max_thrust
-        sim.step(hold)
-        if not sim.alive:
-            blowups.append(f"{sim.failure.reason} at {sim.t:.2f} s")
-            sim.reset()
-        if k % block == block - 1:
-            walls.append(time.perf_counter() - t0)
-    step_wall = np.median(walls) / block
-    best = min(walls) / block
-    n_el = drone.fem.n_elems
-    speed = dict(zip(SPEED, (n_el * sim.n_sub / step_wall, 1e6 * step_wall / sim.n_sub,
-                             cfg.sim.control_dt / step_wall, cfg.sim.control_dt / best)))
-    if blowups:
-        # a diverged run's blocks time blown-up states and resets, not a flight: no speed to report
-        # (null in the CSV, metrics.json and the plot alike), the blow-ups counted instead
-        speed = dict.fromkeys(speed, None)
-    return {**stepping(drone, drone_cfg, sim), **speed, "blowups": len(blowups), "blowup_detail": "; ".join(blowups)}
+    """The full model's row of time_models (the simulator as ``cfg.sim`` gives it)."""
+    return time_models(drone, drone_cfg, cfg, simulators(drone, cfg, ["full"], seed), seconds, seed, block)["full"]
 
 
-def stepping(drone, drone_cfg, sim) -> dict:
-    """What a mesh costs without timing it: elements and the substeps of its stable step."""
-    return {"drone": drone_cfg.name, "element": "quadratic" if drone.fem.order == 2 else "linear",
-            "dim": drone.dim, "elements": drone.fem.n_elems, "nodes": len(drone.fem.rest),
-            "edge_length": drone_cfg.mesh.edge_length, "substep_ms": 1e3 * sim.dt,
-            "substeps_per_step": sim.n_sub}
+def evaluated_elements(drone, sim) -> int:
+    """The elements a substep evaluates: the mesh's, or the reduced model's cubature set."""
+    reduced = getattr(sim, "reduced", None)
+    return drone.fem.n_elems if reduced is None else len(reduced.elements)
+
+
+def mesh_row(drone, drone_cfg, model: str = "full") -> dict:
+    """The row's drone, mesh and model."""
+    return {"drone": drone_cfg.name, "element": "quadratic" if drone.fem.order == 2 else "linear", "model": model,
+            "dim": drone.dim, "elements": drone.fem.n_elems if model == "full" else None,
+            "nodes": len(drone.fem.rest), "edge_length": drone_cfg.mesh.edge_length}
+
+
+def stepping(drone, drone_cfg, sim, model: str = "full") -> dict:
+    """What a mesh costs without timing it: elements (a reduced model's: its cubature's) and
+    the substeps of its stable step."""
+    return {**mesh_row(drone, drone_cfg, model), "elements": evaluated_elements(drone, sim),
+            "substep_ms": 1e3 * sim.dt, "substeps_per_step": sim.n_sub}
+
+
+def reduced_errors(drone, sim, gravity: float, load: float) -> dict:
+    """A reduced row's accuracy: its linear statics under the accuracy load against the full
+    model's on the same mesh (reduced_gates.static_errors: the cubature's rest stiffness)."""
+    from sdexp.eval.reduced_gates import static_errors
+    if isinstance(sim, str) or getattr(sim, "reduced", None) is None:
+        return {}
+    return {f"{k}_vs_full": v for k, v in static_errors(drone, sim.reduced, gravity, load).items()}
 
 
 def with_edge(drone_cfg, edge_length: float):
@@ -75,6 +175,15 @@ def drone_config(cfg, name: str):
     return cfg.drone if name == cfg.drone.name else conf.drone(name)
 
 
+def check(run: Run) -> None:
+    """Before anything is written: the bench names its models itself (its other series and the
+    variants are the full model's)."""
+    model = getattr(run.cfg.sim, "model", "full")
+    if model != "full":
+        raise UserError(f"sim.model = {model}: bench_sim times the models experiment.params.models names "
+                        f"(e.g. [full,reduced]), each beside the full one: allowed sim.model = full here")
+
+
 def run(run: Run) -> dict:
     from sdexp.eval.bench_variants import run_variants
     from sdexp.eval.plots import bench_plot, variants_plot
@@ -84,14 +193,19 @@ def run(run: Run) -> dict:
     names = drone_names() if p.drones is None else list(p.drones)   # [] = none (e.g. the variants alone)
     elements = list(p.elements)
     gravity, load = float(cfg.sim.gravity), float(p.bend_load)
+    models = list(p.models)
     rows = []
     for name in Phase("bench_sim drones", len(names), "drones").iterate(names):
         d = drone_config(cfg, name)
         ref = converged_response(d, cfg.cache_dir, p.refine[f"{d.dim}d"], gravity, load)
         for element in elements:
             drone = build_drone(d, cfg.cache_dir, element)
-            rows.append({"series": "drone", **time_drone(drone, d, cfg, float(p.seconds), int(cfg.seed)),
-                         **response_errors(drone, ref, gravity, load)})
+            sims = simulators(drone, cfg, models, int(cfg.seed))
+            timed = time_models(drone, d, cfg, sims, float(p.seconds), int(cfg.seed))
+            for model in models:
+                accuracy = response_errors(drone, ref, gravity, load) if model == "full" else \
+                    reduced_errors(drone, sims[model], gravity, load)
+                rows.append({"series": "drone", **timed[model], **accuracy})
     for name in Phase("bench_sim resolutions", len(names), "drones", enabled=bool(p.resolution_factors)).iterate(
             names if p.resolution_factors else []):
         d = drone_config(cfg, name)
@@ -117,17 +231,19 @@ def run(run: Run) -> dict:
     for name in Phase("bench_sim variants", len(variant_drones), "drones", enabled=bool(variant_drones)).iterate(
             variant_drones):
         d = drone_config(cfg, name)
-        rows += run_variants(build_drone(d, cfg.cache_dir, "quadratic"), d, cfg, p)
+        rows += [{**r, "model": "full"} for r in run_variants(build_drone(d, cfg.cache_dir, "quadratic"), d, cfg, p)]
     table = pd.DataFrame(rows)
-    for c in SPEED:   # a blown-up run's null speeds: NaN in a numeric column, as the plot reads it
+    for c in NUMERIC:   # a blown-up run's null speeds: NaN in a numeric column, as the plot reads it
         if c in table:
             table[c] = pd.to_numeric(table[c])
     run.table(table, "bench_sim")
     if (table["series"] != "variant").any():
-        bench_plot(table, out_dir / "bench_sim.png")
-        show = ["series", "drone", "element", "elements", "substeps_per_step", "realtime_factor",
-                "element_substeps_per_s", "bend_error", "compliance_error", "blowups"]
-        log.info(table[table["series"] != "variant"][show].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+        bench_plot(table[table["model"] == "full"], out_dir / "bench_sim.png")   # the full model's figure
+        show = ["series", "drone", "element", "model", "elements", "substeps_per_step", "us_per_substep",
+                "realtime_factor", "speedup_vs_full", "element_substeps_per_s", "bend_error", "compliance_error",
+                "bend_error_vs_full", "compliance_error_vs_full", "blowups", "left_range", "reason"]
+        log.info(table[table["series"] != "variant"][[c for c in show if c in table]].to_string(
+            index=False, float_format=lambda v: f"{v:.4g}"))
     if variant_drones:
         variants_plot(table, out_dir / "variants.png")
         show = ["drone", "variant", "kernel_ns_per_element_substep", "kernel_speedup", "kernel_gflops", "peak_share",
@@ -139,10 +255,17 @@ def run(run: Run) -> dict:
 
 
 def metrics(rows: list[dict]) -> dict:
-    """metrics.json: each benchmarked drone's speed (null where it blew up), accuracy and blow-ups;
+    """metrics.json: each benchmarked drone's speed (null where it blew up or was not measured),
+    accuracy and blow-ups (another model's under <drone>_<element>_<model>_..., with its speed-up);
     each variant's speed-ups and deviations (sim.precision, sim.mass_scaling)."""
     out = {}
     for r in rows:
+        if r["series"] == "drone" and r.get("model", "full") != "full":
+            tag = f"{r['drone']}_{r['element']}_{r['model']}"
+            for key in ("realtime_factor", "speedup_vs_full", "substeps_per_step", "elements", "blowups",
+                        "left_range", "bend_error_vs_full", "compliance_error_vs_full"):
+                out[f"{tag}_{key}"] = r.get(key)
+            continue
         if r["series"] == "drone":
             tag = f"{r['drone']}_{r['element']}"
             out[f"{tag}_realtime_factor"] = r["realtime_factor"]
@@ -156,4 +279,5 @@ def metrics(rows: list[dict]) -> dict:
                         "step_gain", "added_mass_fraction", "frequency_change_max", "position_deviation_end",
                         "bend_deviation_deg_max", "bend_rms_deviation", "energy_drift"):
                 out[f"{tag}_{key}"] = r[key]
-    return out
+    # what was not measured (a diverged flight's deviations, a 2D kernel's GFLOP/s) is null, as JSON has it
+    return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in out.items()}

@@ -81,6 +81,7 @@ def time_variants(sims: dict[str, Simulator], seconds: float, seed: int, rounds:
             if r % 10 == 0:
                 peak[k].append(peak_gflops(sim.body.real is np.float32))
     n_blocks = max(1, int(round(seconds / sims[names[0]].cfg.control_dt / block)))
+    blowups = {k: [] for k in names}
     for r in range(n_blocks):
         for k in names:
             sim = sims[k]
@@ -90,6 +91,7 @@ def time_variants(sims: dict[str, Simulator], seconds: float, seed: int, rounds:
                     holds[k] = _hold(rngs[k], sim.drone)
                 sim.step(holds[k])
                 if not sim.alive:
+                    blowups[k].append(f"{sim.failure.reason} at {sim.t:.2f} s")
                     sim.reset()
             steps[k].append((time.perf_counter() - t0) / block)
     out, first = {}, names[0]
@@ -97,15 +99,19 @@ def time_variants(sims: dict[str, Simulator], seconds: float, seed: int, rounds:
         sim = sims[k]
         ns, ns_best = float(np.median(kern[k])), float(min(kern[k]))
         kernel_speedup = float(np.median(np.array(kern[first]) / np.array(kern[k])))
-        step_speedup = float(np.median(np.array(steps[first]) / np.array(steps[k])))
         flops = FLOPS.get(sim.fem.elems.shape[1], np.nan) if sim.fem.dim == 3 else np.nan
         gflops, top = flops / ns_best, max(peak[k])
+        # a variant that blew up timed blown-up states and resets, not a flight: no step speed (null), as
+        # bench_sim's drone rows; the kernel's figures time the forces of one state and stand
+        diverged = bool(blowups[k] or blowups[first])
         out[k] = {"kernel_ns_per_element_substep": ns, "kernel_ns_best": ns_best,
-                  "kernel_speedup": kernel_speedup, "step_speedup": step_speedup,
+                  "kernel_speedup": kernel_speedup,
+                  "step_speedup": None if diverged else float(np.median(np.array(steps[first]) / np.array(steps[k]))),
                   "kernel_gflops": gflops, "peak_gflops": top, "peak_share": gflops / top,
                   "substeps_per_step": sim.n_sub,
-                  "realtime_factor": sim.cfg.control_dt / float(np.median(steps[k])),
-                  "realtime_factor_best_block": sim.cfg.control_dt / float(min(steps[k]))}
+                  "realtime_factor": None if blowups[k] else sim.cfg.control_dt / float(np.median(steps[k])),
+                  "realtime_factor_best_block": None if blowups[k] else sim.cfg.control_dt / float(min(steps[k])),
+                  "blowups": len(blowups[k]), "blowup_detail": "; ".join(blowups[k])}
     return out
 
 
@@ -149,20 +155,24 @@ def _rms_ratio(rows, num: str, den: str) -> float:
     return float(np.sqrt(np.mean([r[num] ** 2 for r in rows]) / max(np.mean([r[den] ** 2 for r in rows]), 1e-300)))
 
 
-def energy_drift(drone, cfg, overrides: dict, seconds: float, seed: int, excite: float = 0.5) -> float:
-    """Largest |E - E0| / E0 of an undamped free vibration with no thrust and no gravity, where
+def energy_drift(drone, cfg, overrides: dict, seconds: float, seed: int,
+                 excite: float = 0.5) -> tuple[float | None, str]:
+    """(largest |E - E0| / E0, "") of an undamped free vibration with no thrust and no gravity, where
     the continuum conserves E (kinetic with the inertial mass, plus the co-rotated strain energy)
     and symplectic Euler keeps it bounded: its drift is the integrator's and the forces' error.
     The start: the float64 drone after ``excite`` s of random holds (deformed, spinning). A body
-    that blows up on the way (a substep past the stable one) has drifted without bound: inf."""
+    that diverges on the way (a substep past the stable one) has no drift to measure: (None, the
+    reason), by the simulator's own failure rules (an inverted element, a vertex past
+    sim.max_speed, a state not finite) checked before its energy is read: the strain energy's
+    SVD of a runaway body's deformation gradients does not converge."""
     noise = replace(cfg.noise, enabled=False)
     base = Simulator(drone, cfg.sim, noise, seed)
     rng = np.random.default_rng(seed)
     hold = _hold(rng, drone)
     for _ in range(int(round(excite / cfg.sim.control_dt))):
         base.step(hold)
-    if not base.alive:
-        return float("inf")
+        if not base.alive:
+            return None, f"energy check: the excitation diverged ({base.failure.reason} at {base.t:.2f} s)"
     sim = Simulator(drone, replace(cfg.sim, **overrides), noise, seed)
     sim.body.x[:], sim.body.v[:], sim.body.q[:] = base.body.x, base.body.v, base.body.q
     body, fem = sim.body, sim.fem
@@ -170,12 +180,15 @@ def energy_drift(drone, cfg, overrides: dict, seconds: float, seed: int, excite:
     def energy() -> float:
         return 0.5 * float(np.sum(body.mass[:, None] * body.v ** 2)) + strain_energy(fem, body.x)
     e0, worst = energy(), 0.0
-    for _ in range(int(round(seconds / cfg.sim.control_dt))):
-        body.run(sim.n_sub, sim.dt)
-        if not np.all(np.isfinite(body.x)):
-            return float("inf")
+    for k in range(int(round(seconds / cfg.sim.control_dt))):
+        inverted, vmax2 = body.run(sim.n_sub, sim.dt)
+        why = ("positions or velocities not finite" if not (np.isfinite(vmax2) and np.all(np.isfinite(body.x)))
+               else f"{inverted} elements inverted" if inverted > 0
+               else f"vertex speed {np.sqrt(vmax2):.1f} m/s > sim.max_speed" if vmax2 > sim.cfg.max_speed ** 2 else "")
+        if why:
+            return None, f"energy check: the free vibration diverged at {(k + 1) * cfg.sim.control_dt:.2f} s ({why})"
         worst = max(worst, abs(energy() - e0))
-    return worst / e0
+    return worst / e0, ""
 
 
 def frequency_changes(sim: Simulator, k: int = 8) -> np.ndarray:
@@ -200,6 +213,7 @@ def run_variants(drone, drone_cfg, cfg, p) -> list[dict]:
         freq = frequency_changes(sim)
         dev = flight_deviation(drone, cfg, o, float(p.deviation_seconds), seed) if o != REFERENCE else []
         at = {round(r["time"], 2): r for r in dev if "position_deviation" in r}
+        drift, drift_why = energy_drift(drone, cfg, o, 1.0, seed)
         rows.append({
             "series": "variant", "drone": drone_cfg.name, "variant": k, "element": "quadratic",
             "elements": sim.fem.n_elems, **t,
@@ -213,12 +227,18 @@ def run_variants(drone, drone_cfg, cfg, p) -> list[dict]:
             "bend_rms_deviation": _rms_ratio(at.values(), "bend_rms_deviation", "bend_rms"),
             "travel": max((r["travel"] for r in at.values()), default=np.nan),
             "deviation_failure": next((r["failure"] for r in dev if "failure" in r), ""),
-            "energy_drift": energy_drift(drone, cfg, o, 1.0, seed),
+            "energy_drift": drift,   # null where the body diverged: the reason in blowup_detail
+            "blowup_detail": "; ".join(filter(None, [t["blowup_detail"], drift_why])),
         })
+
+        def shown(v, form: str) -> str:
+            return "null" if v is None else format(v, form)
         log.info(f"  {drone_cfg.name} {k}: kernel {t['kernel_ns_per_element_substep']:.1f} ns/element-substep "
                  f"(x{rows[-1]['kernel_speedup']:.2f}, {t['kernel_gflops']:.1f} GFLOP/s, "
-                 f"{t['peak_share']:.0%} of the {t['peak_gflops']:.0f} GFLOP/s probe), step x{rows[-1]['step_speedup']:.2f} "
-                 f"({t['realtime_factor']:.2f}x real time, {t['substeps_per_step']} substeps), "
+                 f"{t['peak_share']:.0%} of the {t['peak_gflops']:.0f} GFLOP/s probe), step "
+                 f"x{shown(t['step_speedup'], '.2f')} ({shown(t['realtime_factor'], '.2f')}x real time, "
+                 f"{t['substeps_per_step']} substeps, {t['blowups']} blow-ups), "
                  f"+{sim.scaling.fraction:.2%} mass for x{sim.scaling.gain:.2f} step, frequencies "
-                 f"{rows[-1]['frequency_changes']}, energy drift {rows[-1]['energy_drift']:.3%}")
+                 f"{rows[-1]['frequency_changes']}, energy drift {shown(drift, '.3%')}"
+                 + (f"; {rows[-1]['blowup_detail']}" if rows[-1]["blowup_detail"] else ""))
     return rows
