@@ -14,6 +14,7 @@ refuses the config (the reduced one: ground, obstacles, mass scaling) is a row w
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import replace
 
@@ -81,6 +82,7 @@ def time_models(drone, drone_cfg, cfg, sims: dict, seconds: float, seed: int, bl
     ``left_range`` and restarted, its speed kept (a substep's cost does not depend on the state;
     the resets' own time is left out of the blocks)."""
     live = {m: s for m, s in sims.items() if not isinstance(s, str)}
+    load = os.getloadavg()[0]
     n_blocks = max(1, int(round(seconds / cfg.sim.control_dt)) // block)
     warm, holds = thrust_holds(drone, n_blocks * block, seed)
     for sim in live.values():
@@ -128,6 +130,9 @@ def time_models(drone, drone_cfg, cfg, sims: dict, seconds: float, seed: int, bl
             rows[m]["left_range"] = len(left[m])
             ok = "full" in live and not blowups["full"] and not blowups[m]
             rows[m]["speedup_vs_full"] = float(np.median(np.array(walls["full"]) / np.array(walls[m]))) if ok else None
+    # the machine's load beside the figures (the neighbours' share of the cores moves them)
+    log.info(f"bench_sim: {drone_cfg.name} timed ({', '.join(live)}) under a load average of {load:.1f} -> "
+             f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     return rows
 
 
