@@ -248,6 +248,29 @@ def stable_substep(model: ReducedModel, safety: float) -> float:
     return safety * 2.0 / float(np.sqrt(1.05 * max(np.linalg.eigvalsh(reduced_stiffness(model))[-1], 1e-12)))
 
 
+@nb.njit(cache=True)
+def _nodes(c, vel, quat, w, z, zd, X3, Phi):
+    """x = c + R rho, v = vel + R (w x rho + Phi zd), rho = X3 + Phi z, for the rows X3 (n, 3)
+    and Phi (n 3, r): compiled, as the readings need them every control step."""
+    n = X3.shape[0]
+    R = quat_matrix(quat)
+    rho = np.empty(3 * n)
+    rd = np.empty(3 * n)
+    _mv(Phi, z, rho)
+    _mv(Phi, zd, rd)
+    x = np.empty((n, 3))
+    v = np.empty((n, 3))
+    for i in range(n):
+        p0 = X3[i, 0] + rho[3 * i]; p1 = X3[i, 1] + rho[3 * i + 1]; p2 = X3[i, 2] + rho[3 * i + 2]
+        u0 = w[1] * p2 - w[2] * p1 + rd[3 * i]
+        u1 = w[2] * p0 - w[0] * p2 + rd[3 * i + 1]
+        u2 = w[0] * p1 - w[1] * p0 + rd[3 * i + 2]
+        for a in range(3):
+            x[i, a] = c[a] + R[a, 0] * p0 + R[a, 1] * p1 + R[a, 2] * p2
+            v[i, a] = vel[a] + R[a, 0] * u0 + R[a, 1] * u1 + R[a, 2] * u2
+    return x, v
+
+
 class ReducedBody:
     """The state of one reduced body and the call that advances it (integrator.Body's role)."""
 
@@ -332,11 +355,8 @@ class ReducedBody:
     def nodes(self, X3: np.ndarray, Phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World positions and velocities (n, dim) of the nodes with rest rows X3 (n, 3) and basis
         rows Phi (n 3, r)."""
-        R = self.R
-        rho = X3 + (Phi @ self.z).reshape(-1, 3)
-        vel = np.cross(self.w, rho) + (Phi @ self.zd).reshape(-1, 3)
-        d = self.dim
-        return (self.c + rho @ R.T)[:, :d], (self.vel + vel @ R.T)[:, :d]
+        x, v = _nodes(self.c, self.vel, self.quat, self.w, self.z, self.zd, X3, Phi)
+        return x[:, :self.dim], v[:, :self.dim]
 
     def _whole(self):
         if self._full[0] != self._version:
