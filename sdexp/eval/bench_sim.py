@@ -9,7 +9,7 @@ printed and written, never asserted; a blow-up during a timing is counted in the
 process block by block under the same thrust holds, the reduced row with its speed-up over the
 full one (the median of the per-block ratios: this VM's neighbours move absolute timings by
 30-50%, ratios of interleaved blocks much less), its cubature's element count and its linear
-statics against the full model's (``sdexp.eval.reduced_gates.static_errors``). A model that
+statics against the full model's (``sdexp.eval.convergence.reduced_static_errors``). A model that
 refuses the config (the reduced one: ground, obstacles, mass scaling) is a row with its reason."""
 from __future__ import annotations
 
@@ -163,11 +163,11 @@ def stepping(drone, drone_cfg, sim, model: str = "full") -> dict:
 
 def reduced_errors(drone, sim, gravity: float, load: float) -> dict:
     """A reduced row's accuracy: its linear statics under the accuracy load against the full
-    model's on the same mesh (reduced_gates.static_errors: the cubature's rest stiffness)."""
-    from sdexp.eval.reduced_gates import static_errors
+    model's on the same mesh (convergence.reduced_static_errors: the step's rest stiffness)."""
+    from sdexp.eval.convergence import reduced_static_errors
     if isinstance(sim, str) or getattr(sim, "reduced", None) is None:
         return {}
-    return {f"{k}_vs_full": v for k, v in static_errors(drone, sim.reduced, gravity, load).items()}
+    return {f"{k}_vs_full": v for k, v in reduced_static_errors(drone, sim.reduced, gravity, load).items()}
 
 
 def with_edge(drone_cfg, edge_length: float):

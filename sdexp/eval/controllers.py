@@ -18,7 +18,7 @@ from sdexp.control.neural import NeuralController, load_or_train_policy
 from sdexp.control.relinearizing import RelinearizingLQR
 from sdexp.control.rigid import RigidGeometry, RigidLQR
 from sdexp.sim.rigid.geometry import rigid_body, rotation_2d
-from sdexp.sensing.rotations import matrix_from_euler
+from sdexp.sensing.rotations import exp_so3, matrix_from_euler
 from sdexp.sim.simulator import Simulator
 
 
@@ -79,6 +79,42 @@ def _geometry_lqr(cfg, sim: Simulator, **_) -> RigidLQR:
                     update_every=1, name="geometry_lqr", dt=riccati_step(cfg))
 
 
+def _reduced_lqr(cfg, sim: Simulator, **_):
+    """The privileged reduced-model LQR (sdexp.control.modal_lqr): the flown simulator's reduced
+    model (sim.model = reduced) or the drone's reduced model built from sim.reduced (the full
+    model flown: its mesh observed through the best-fit frame and the projected deformation)."""
+    from sdexp.control.modal_lqr import ModalLQR
+    from sdexp.sim.reduced.body import reduced_stiffness, stable_substep
+    from sdexp.sim.reduced.linear import Linearization
+    from sdexp.sim.reduced.model import build_reduced, spec_of
+    from sdexp.sim.physics.native import default_cache_dir
+    from sdexp.sim.reduced.snapshots import hover_thrust
+
+    drone, c = sim.drone, cfg.control
+    model = sim.reduced if sim.reduced is not None else build_reduced(
+        drone, spec_of(cfg.sim.reduced), str(default_cache_dir()), float(cfg.sim.gravity), float(cfg.sim.control_dt))
+    lin = Linearization(model, stable_substep(model, float(cfg.sim.stability_safety)), drone.damping,
+                        drone.deformation_damping, float(cfg.sim.gravity))
+    if sim.reduced is not None:
+        def observe():
+            return lin.of_body(sim.body)
+    else:
+        def observe():
+            return lin.of_nodes(sim.x, sim.v)
+    x0 = observe()
+    R0 = exp_so3(x0[lin.slices["phi"]])
+    p = np.zeros(3)
+    p[:drone.dim] = sim.state(noisy=False).p
+    offset = R0.T @ (p - x0[lin.slices["c"]])   # the measured point (frame IMU) from the centre of mass
+    # the even share of the weight: where the design's thrust rests in the directions the rigid
+    # motion does not feel (the least-norm split loads a plate's tips alone and folds a soft one)
+    u_rest = np.full(drone.num_rotors, hover_thrust(drone, float(cfg.sim.gravity)))
+    K0 = reduced_stiffness(model)
+    _, modes = np.linalg.eigh(0.5 * (K0 + K0.T))
+    return ModalLQR(observe, lin.jacobians, modes, int(cfg.sim.reduced.linear_modes), u_rest, offset, c.q_p, c.q_e,
+                    c.velocity_scale, c.r, c.n, c.kp, c.waypoint_max, planar=drone.dim == 2)
+
+
 def _neural(cfg, sim: Simulator, dyn, data, trained, progress: bool, **_) -> NeuralController:
     a = data.arrays
     x = np.concatenate([np.asarray(a[k]).reshape(len(a[k]), -1) for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot")], 1)
@@ -94,7 +130,12 @@ def _neural(cfg, sim: Simulator, dyn, data, trained, progress: bool, **_) -> Neu
 # and one line here.
 CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "ours": _ours, "rigid_lqr": _rigid_lqr, "geometry_lqr": _geometry_lqr, "neural": _neural,
+    "reduced_lqr": _reduced_lqr,   # privileged: it observes the frame and modal coordinates
 }
+
+
+# the controllers that fly on the learned model (the rest need no data or training)
+LEARNED = ("ours", "neural")
 
 
 def build(name: str, cfg, sim: Simulator, dyn=None, data=None, trained=None, progress: bool = True) -> Controller:

@@ -257,3 +257,17 @@ def response_errors(drone, reference: dict, gravity: float = 9.81, load: float =
                 "freq_reference_uncertainty": float(np.max(np.asarray(reference["freq_uncertainty"]) / ref)),
                 "freq_errors": " ".join(f"{e:+.4f}" for e in err)})
     return out
+
+
+def reduced_static_errors(drone, model, gravity: float, load: float) -> dict:
+    """validate_fem's load, linear statics: the full model's solve and the reduced one's
+    (Phi K_r^-1 Phi^T fb, K_r the step's rest stiffness: the cubature's, its linear modes' block
+    exact with sim.reduced.exact_modes), each measured as validate_fem measures it."""
+    fem = drone.fem
+    fb = balanced(fem, fixed_load(drone, gravity, load))
+    full = bend_and_compliance(drone, fb, static_displacement(fem, fb))
+    from sdexp.sim.reduced.body import reduced_stiffness
+    u = (model.Phi @ np.linalg.solve(reduced_stiffness(model), model.Phi.T @ fb.ravel())).reshape(fem.rest.shape)
+    red = bend_and_compliance(drone, fb, u)
+    return {f"{k}_error": red[k] / full[k] - 1 if np.isfinite(full[k]) and full[k] != 0 else float("nan")
+            for k in ("bend", "compliance")}

@@ -2,7 +2,9 @@
 bar (or log lines), the per-flight CSV, and the position-over-time figure of the paper's SOTA comparison."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
@@ -11,17 +13,44 @@ from sdexp.control.tasks import Task
 from sdexp.sim.simulator import Simulator
 
 
+@dataclass(frozen=True)
+class StateLayout:
+    """The decomposed state's sizes and blocks (what a flight's record and metrics read), known
+    from the drone alone: a flight of a controller without a learned model needs no training."""
+    n_s: int
+    n_e: int
+    dim: int
+    m: int
+
+    @property
+    def slices(self) -> dict[str, slice]:
+        from sdexp.model.dynamics import state_slices
+        return state_slices(self.n_s, self.n_e, self.dim, self.m)
+
+
 class Setup:
-    """The drone, the learned model (cached data and networks) and simulators for cfg."""
+    """The drone, the learned model (cached data and networks, identified when first asked for:
+    ``data``, ``trained``, ``dyn``) and simulators for cfg."""
 
     def __init__(self, cfg, progress: bool = True):
-        from sdexp.model.identification import identify
         from sdexp.sim.drone import build_drone
 
         self.cfg = cfg
-        self.data, self.trained, self.dyn = identify(cfg, progress)
         self.drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
         self.progress = progress
+        self._learned = None
+        lay = self.drone.layout
+        self.layout = StateLayout(lay.n_s, 3 if lay.dim == 3 else 1, lay.dim, self.drone.num_rotors)
+
+    def _identified(self):
+        if self._learned is None:
+            from sdexp.model.identification import identify
+            self._learned = identify(self.cfg, self.progress)
+        return self._learned
+
+    data = property(lambda self: self._identified()[0])
+    trained = property(lambda self: self._identified()[1])
+    dyn = property(lambda self: self._identified()[2])
 
     def simulator(self) -> Simulator:
         """Every flight of an experiment sees the same noise stream (seed = cfg.seed)."""
@@ -29,10 +58,12 @@ class Setup:
 
     def controller(self, name: str, sim: Simulator):
         from sdexp.eval import controllers
+        if name not in controllers.LEARNED:   # the rigid and privileged baselines: no training
+            return controllers.build(name, self.cfg, sim, progress=self.progress)
         return controllers.build(name, self.cfg, sim, self.dyn, self.data, self.trained, self.progress)
 
     def task(self, start, target, seconds: float, **kw) -> Task:
-        return Task(start=start, target=target, seconds=seconds, n_s=self.dyn.n_s, **kw)
+        return Task(start=start, target=target, seconds=seconds, n_s=self.layout.n_s, **kw)
 
     def fly(self, sim: Simulator, controller, task: Task, label: str | None = None, watch=None,
             recorder=None) -> tuple[Flight, dict]:
@@ -54,7 +85,7 @@ class Setup:
             flown = flight.t[-1]
             ended = f"failed: {flight.failure}" if flight.failure else "survived"
             bar.close(f"{flown:.2f} s flown ({ended}), {flown / max(bar.elapsed, 1e-9):.2f}x real time")
-        return flight, metrics(flight, self.dyn.slices["p"], self.dyn.slices["e"], task.seconds)
+        return flight, metrics(flight, self.layout.slices["p"], self.layout.slices["e"], task.seconds)
 
     def recorder(self, on: bool):
         """A ``FrameRecorder`` for a flight to animate (None: ``on`` is false)."""
@@ -85,19 +116,20 @@ def short_reason(failure: str) -> str:
     return why.split(",")[0] if why.startswith("left the arena") else why.split(" > ")[0]
 
 
-def flight_table(flight: Flight, dyn) -> pd.DataFrame:
-    """One row per control step: time, the noise-free state by channel, goal position, command."""
+def flight_table(flight: Flight, layout) -> pd.DataFrame:
+    """One row per control step: time, the noise-free state by channel, goal position, command
+    (``layout``: a StateLayout or the LearnedDynamics, whose blocks it shares)."""
     a = flight.arrays()
     cols = {"t": a["t"]}
-    names = {"s": [f"s_{i + 1}" for i in range(dyn.n_s)], "e": ["e_x", "e_y", "e_z"][: dyn.n_e] if dyn.n_e == 3 else ["theta"],
-             "p": ["x", "y", "z"][: dyn.dim]}
+    names = {"s": [f"s_{i + 1}" for i in range(layout.n_s)], "e": ["e_x", "e_y", "e_z"][: layout.n_e] if layout.n_e == 3 else ["theta"],
+             "p": ["x", "y", "z"][: layout.dim]}
     for blk in ("s", "e", "p"):
         for j, nm in enumerate(names[blk]):
-            cols[nm] = a["x"][:, dyn.slices[blk]][:, j]
+            cols[nm] = a["x"][:, layout.slices[blk]][:, j]
     for j, nm in enumerate(names["p"]):
-        cols[f"goal_{nm}"] = a["goal"][:, dyn.slices["p"]][:, j]
-    u = np.vstack([a["u"], np.full((1, dyn.m), np.nan)]) if len(a["u"]) else np.full((len(a["t"]), dyn.m), np.nan)
-    for j in range(dyn.m):
+        cols[f"goal_{nm}"] = a["goal"][:, layout.slices["p"]][:, j]
+    u = np.vstack([a["u"], np.full((1, layout.m), np.nan)]) if len(a["u"]) else np.full((len(a["t"]), layout.m), np.nan)
+    for j in range(layout.m):
         cols[f"u_{j + 1}"] = u[:, j]
     return pd.DataFrame(cols)
 

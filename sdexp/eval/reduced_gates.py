@@ -78,6 +78,7 @@ def gate_row(cfg, name: str, point: tuple | None, rows_dir, report=None) -> dict
 
 def _gate_row(cfg, name: str, point: tuple | None) -> dict:
     from sdexp.eval.bench_sim import drone_config
+    from sdexp.eval.convergence import reduced_static_errors
     from sdexp.sim.drone import build_drone
     from sdexp.sim.physics.modes import free_frequencies
     from sdexp.sim.reduced.body import frequencies
@@ -97,7 +98,7 @@ def _gate_row(cfg, name: str, point: tuple | None) -> dict:
     if point is None:
         full_f, red_f = free_frequencies(drone.fem, k=8), frequencies(model, 8)
         row["freq_error"] = float(np.max(np.abs(red_f / full_f - 1)))
-        row.update(static_errors(drone, model, float(sim.gravity), float(p.bend_load)))
+        row.update(reduced_static_errors(drone, model, float(sim.gravity), float(p.bend_load)))
         row.update(energy_drifts(drone, model, float(p.energy_seconds)))
         row.update(verdict(row))
         if "near_hover" in p.recipes:   # the regime the controllers fly in, judged apart
@@ -128,21 +129,6 @@ def verdict(row: dict, recipe: str | None = None) -> dict:
     if row["energy_drift_reduced"] > max(row["energy_drift_full"], 1e-3) * 1.05:
         fails.append(f"energy drift {row['energy_drift_reduced']:.2%} > the full model's {row['energy_drift_full']:.2%}")
     return {"passes": not fails, "why": "; ".join(fails)}
-
-
-def static_errors(drone, model, gravity: float, load: float) -> dict:
-    """validate_fem's load, linear statics: the full model's solve and the reduced one's
-    (Phi K_r^-1 Phi^T fb, K_r the step's rest stiffness: the cubature's), each measured as
-    validate_fem measures it."""
-    from sdexp.eval.convergence import balanced, bend_and_compliance, fixed_load, static_displacement
-    fem = drone.fem
-    fb = balanced(fem, fixed_load(drone, gravity, load))
-    full = bend_and_compliance(drone, fb, static_displacement(fem, fb))
-    from sdexp.sim.reduced.body import reduced_stiffness
-    u = (model.Phi @ np.linalg.solve(reduced_stiffness(model), model.Phi.T @ fb.ravel())).reshape(fem.rest.shape)
-    red = bend_and_compliance(drone, fb, u)
-    return {f"{k}_error": red[k] / full[k] - 1 if np.isfinite(full[k]) and full[k] != 0 else float("nan")
-            for k in ("bend", "compliance")}
 
 
 def flight_errors(cfg, drone, spec, recipes, seeds, seconds: float) -> dict:

@@ -33,7 +33,8 @@ PAPER = {
     "neural": (0.19, 23.454, 179996.0),
 }
 LABELS = {"ours": "ours (relinearizing LQR)", "rigid_lqr": "LQR (rest shape)",
-          "geometry_lqr": "geometry-updating LQR", "neural": "neural controller"}
+          "geometry_lqr": "geometry-updating LQR", "neural": "neural controller",
+          "reduced_lqr": "reduced-model LQR (privileged)"}
 
 
 def _paper_ending(survival: float, seconds: float) -> str:
@@ -56,7 +57,7 @@ def run(run: Run) -> dict:
         wall = time.perf_counter() - t0
         setup.animate(out_dir, f"sota_{name}", rec, f"{cfg.drone.name}: {LABELS.get(name, name)}, "
                       f"{list(p.start)} -> {list(p.target)}; {ending(m)}")
-        tab = flight_table(flight, setup.dyn)
+        tab = flight_table(flight, setup.layout)
         run.table(tab, f"trajectory_{name}")
         tables[name] = tab
         ps, pe, pu = PAPER.get(name, (np.nan,) * 3)
@@ -65,8 +66,8 @@ def run(run: Run) -> dict:
         titles[name] = (f"{LABELS.get(name, name)}: {ending(m)}, {m['final_error']:.2f} m off\n"
                         f"paper: {_paper_ending(ps, seconds)}, {pe:g} m off")
         out.update({f"{name}_{k}": v for k, v in m.items()})
-        if name == "ours" and ctl.timings:
-            out["ours_ms_per_relinearization"] = 1e3 * float(np.median(ctl.timings))
+        if name in ("ours", "reduced_lqr") and ctl.timings:
+            out[f"{name}_ms_per_relinearization"] = 1e3 * float(np.median(ctl.timings))
         log.info(f"sdexp: {name}: survived {m['survival_time']:.2f} s ({m['failure'] or 'whole flight'}), "
                  f"final error {m['final_error']:.3f} m, thrust usage {m['thrust_usage']:.0f} N")
     table = pd.DataFrame(rows)

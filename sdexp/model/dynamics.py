@@ -115,6 +115,17 @@ class _one_thread:
             torch.set_num_threads(self.n)
 
 
+def state_slices(n_s: int, n_e: int, dim: int, m: int) -> dict[str, slice]:
+    """Where each block of the decomposed state x = (s, s_dot, e, e_dot, p, p_dot) sits, and the
+    command's in z = concat(x, u)."""
+    sizes = {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim, "u": m}
+    out, o = {}, 0
+    for k, n in sizes.items():
+        out[k] = slice(o, o + n)
+        o += n
+    return out
+
+
 class LearnedDynamics:
     def __init__(self, nets: Mapping[str, ResidualMLP | EnsembleMLP], n_s: int, n_e: int, dim: int, m: int,
                  alpha: float = 0.01, specs: Sequence[NetSpec] = DECOMPOSED, dtype=torch.float64,
@@ -131,13 +142,8 @@ class LearnedDynamics:
         self.delay = int(delay)
         self.bend_spread = None if bend_spread is None else np.asarray(bend_spread, dtype=float)
         sizes = {"s": n_s, "s_dot": n_s, "e": n_e, "e_dot": n_e, "p": dim, "p_dot": dim}
-        self.slices: dict[str, slice] = {}
-        o = 0
-        for k in ("s", "s_dot", "e", "e_dot", "p", "p_dot"):
-            self.slices[k] = slice(o, o + sizes[k])
-            o += sizes[k]
-        self.n = o
-        self.slices["u"] = slice(o, o + m)   # in z = concat(x, u)
+        self.slices = state_slices(n_s, n_e, dim, m)
+        self.n = self.slices["u"].start
         self.dtype = dtype
         heading = applies(frame, self.n_e)
         cols_of = dict(self.slices)

@@ -21,7 +21,7 @@ from tests.sim.test_simulator import noise_cfg, sim_cfg
 T = 0.12
 
 
-def soft_plate(element: str = "quadratic"):
+def soft_plate(element: str = "quadratic", youngs: float = 2e4):
     """A 2.4 m x 0.12 m x 0.8 m plate, 3 rotors, 2 IMUs: soft enough to bend in flight."""
     pts, tets = box_tets((12, 1, 4), (2.4, T, 0.8), (-1.2, -T / 2, -0.4))
     up = np.array([0.0, 1.0, 0.0])
@@ -29,7 +29,7 @@ def soft_plate(element: str = "quadratic"):
                   rotors=np.array([[-1.0, T / 2, 0], [0, T / 2, 0.2], [1.0, T / 2, 0]]),
                   rotor_normals=np.tile(up, (3, 1)), imus=np.array([[-0.9, T / 2, 0.0], [0.9, T / 2, 0.0]]),
                   imu_normals=np.tile(up, (2, 1)), frame_imus=np.array([[0.0, T / 2, 0.0]]), frame_normals=up[None])
-    cfg = DroneConfig(name="plate", shape="test", size=[2.4, T, 0.8], youngs_modulus=2e4, num_rotors=3,
+    cfg = DroneConfig(name="plate", shape="test", size=[2.4, T, 0.8], youngs_modulus=youngs, num_rotors=3,
                       num_sensors=2, rotor_radius=0.25, imu_radius=0.25)
     return assemble_drone(cfg, shape, pts, tets, element)
 
