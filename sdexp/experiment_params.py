@@ -111,7 +111,7 @@ class ObstacleParams(Params):
 
 
 FLEET_TASKS = ("hover", "reach", "velocity", "deform")   # the paper's four tasks (section 5)
-FLEET_CONTROLLERS = ("ours", "rigid_lqr", "geometry_lqr")   # the neural controller needs its own training
+FLEET_CONTROLLERS = ("ours", "rigid_lqr", "geometry_lqr", "reduced_lqr")   # the neural controller needs its own training
 
 
 @dataclass

@@ -125,7 +125,7 @@ def deform_schedule(n_s: int, p: FleetParams) -> tuple[list, list, float]:
 
 def tasks_for(setup, p: FleetParams) -> dict:
     """name -> (Task, time from which its errors are measured)."""
-    dim, n_s = setup.dyn.dim, setup.dyn.n_s
+    dim, n_s = setup.layout.dim, setup.layout.n_s
     start = np.zeros(dim)
     out = {}
     for name in p.tasks:
@@ -383,6 +383,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
     """One drone and seed: learn, fly every task under every controller; written to ``path``.
     Never raises for the drone's sake: a failure is the job's ``error``, with its phase.
     ``report``: the phase it starts (a str, ``job_progress``), and 1 when it is done."""
+    from sdexp.eval.controllers import LEARNED
     from sdexp.eval.flights import Setup
 
     def starting(what: str) -> str:
@@ -400,7 +401,10 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         result["seconds"]["learning"] = time.perf_counter() - t0
         phase = starting("physics")
         t1 = time.perf_counter()
-        result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained, cache_dir=job_cfg.cache_dir), **model_at_hover(setup)}
+        # the learned model's columns where a controller flies on it (no data or nets otherwise)
+        learned = any(c in LEARNED for c in p.controllers)
+        result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained if learned else None,
+                                          cache_dir=job_cfg.cache_dir), **(model_at_hover(setup) if learned else {})}
         result["seconds"]["physics"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         trip = float(p.reach_lengths) * body_length(setup)
@@ -409,7 +413,7 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
                 phase = starting(f"{task_name} under {ctl_name}")
                 sim = setup.simulator()
                 flight, m = setup.fly(sim, setup.controller(ctl_name, sim), task, f"{name} {task_name}")
-                errors = flight_errors(flight, setup.dyn, since)
+                errors = flight_errors(flight, setup.layout, since)
                 primary = PRIMARY[task_name]
                 value = m[primary] if primary in m else errors[primary]
                 result["rows"].append({
@@ -534,6 +538,7 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
     """Jobs written before a diagnostic joined the physics (``model_at_hover`` and its data fit,
     ``deform_reach_deg``, ``shape_hover_fold_deg``; resumed runs) get it from their cached drone, data and nets, written back
     to the job's file; nothing is flown again."""
+    from sdexp.eval.controllers import LEARNED
     from sdexp.eval.flights import Setup
     from sdexp.sim.rigid.statics import deform_reach
 
@@ -543,7 +548,7 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
                                                     "shape_hover_fold_deg")):
             continue
         setup = Setup(job_config(cfg, name, seed, p), progress=False)
-        if "model_accel_error_at_release" not in phys:
+        if "model_accel_error_at_release" not in phys and any(c in LEARNED for c in p.controllers):
             phys.update(model_at_hover(setup))
         if "deform_reach_deg" not in phys:
             phys["deform_reach_deg"] = deform_reach(setup.drone, setup.cfg.sim)

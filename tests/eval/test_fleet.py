@@ -120,11 +120,11 @@ def test_the_deform_task_bends_the_odd_sensors_then_releases_them():
 def test_the_velocity_task_ramps_and_the_reach_task_is_diagonal(cache_dir):
     cfg = make_config("experiment=fleet", "drone=flower")
 
-    class FakeDyn:
+    class FakeLayout:
         dim, n_s = 3, 8
 
     class FakeSetup:
-        dyn = FakeDyn()
+        layout = FakeLayout()
 
         def __init__(self):
             self.cfg = cfg
