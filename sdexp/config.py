@@ -550,6 +550,10 @@ def validate(cfg: DictConfig | Config) -> None:
     _check_drone(cfg.drone)
     _check_sim(cfg)
     _check_learning(cfg.data)
+    for key, bad in (("sim.ground", cfg.sim.ground is not None), ("sim.mass_scaling", cfg.sim.mass_scaling > 0)):
+        # what the reduced model refuses, named for the key that put the data on it
+        check_range(cfg.data.sim_model != "reduced" or not bad, "data.sim_model", cfg.data.sim_model,
+                    f"null or full while {key} is set (the reduced model cannot carry it)")
     _check_control(cfg)
     check_finite(cfg)   # what no range names: sim.ground, effects' and shapes' params, ...
 

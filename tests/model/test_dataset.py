@@ -372,3 +372,5 @@ def test_data_made_on_the_reduced_model_are_keyed_by_the_model_they_were_made_on
         == dataset_key(dataset_spec(base, CHUNK))
     with pytest.raises(UserError, match=r"data.sim_model = 'reduce'.*null, full or reduced"):
         validate(small_config(str(tmp_path), "drone=star", "data.sim_model=reduce"))
+    with pytest.raises(UserError, match=r"data.sim_model = 'reduced'.*while sim.ground is set"):
+        validate(small_config(str(tmp_path), "drone=star", "data.sim_model=reduced", "sim.ground=-1.0"))
