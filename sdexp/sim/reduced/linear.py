@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from sdexp.sensing.rotations import matrix_from_quat
 from sdexp.sim.reduced.body import ReducedBody
 from sdexp.sim.reduced.model import ReducedModel
 
@@ -63,12 +62,9 @@ class Linearization:
         return self.of_body(self.body)
 
     def place(self, x: np.ndarray) -> None:
-        b, s = self.body, self.slices
-        b.place(x[s["c"]][:self.model.dim], matrix_from_quat(quaternion(x[s["phi"]]))[:self.model.dim, :self.model.dim],
-                x[s["z"]], x[s["v"]][:self.model.dim], x[s["w"]], x[s["zd"]])
-        b.c[:] = x[s["c"]]
-        b.vel[:] = x[s["v"]]
-        b.quat[:] = quaternion(x[s["phi"]])
+        """The linearisation's body at state x (ReducedBody.copy_state's order)."""
+        s = self.slices
+        self.body.restore((x[s["c"]], x[s["v"]], quaternion(x[s["phi"]]), x[s["w"]], x[s["z"]], x[s["zd"]]))
 
     def derivative(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """F(x, u): the state's rate over one substep of the reduced step."""
