@@ -85,16 +85,12 @@ class ModalLQR:
         """The goal as a state (c, phi, v; the rest zero): the task's position, level at the
         current heading."""
         goal = self.task.goal(t)
-        if self.planar:
-            R_ref = np.eye(3)
-        else:
-            heading = euler_from_matrix(exp_so3(x[self.sl["phi"]]))[1]   # sdexp's yaw: about the world's up, y
-            R_ref = matrix_from_euler(np.array([0.0, heading, 0.0]))
+        # sdexp's yaw turns about the world's up axis, y: the level rotation at it is R_y(heading)
+        heading = 0.0 if self.planar else euler_from_matrix(exp_so3(x[self.sl["phi"]]))[1]
         ref = np.zeros_like(x)
         ref[self.sl["c"]][:len(goal.p)] = goal.p
-        ref[self.sl["c"]] -= R_ref @ self.offset
-        ref[self.sl["phi"]] = heading_vector = np.zeros(3) if self.planar else np.array([0.0, heading, 0.0])
-        ref[self.sl["phi"]] = _unwrapped(heading_vector, x[self.sl["phi"]])
+        ref[self.sl["c"]] -= matrix_from_euler(np.array([0.0, heading, 0.0])) @ self.offset
+        ref[self.sl["phi"]] = _unwrapped(np.array([0.0, heading, 0.0]), x[self.sl["phi"]])
         ref[self.sl["v"]][:len(goal.p_dot)] = goal.p_dot
         return ref
 
