@@ -37,7 +37,7 @@ NUMERIC = (*SPEED, "speedup_vs_full", "step_speedup", "energy_drift")
 
 def sim_config(sim_cfg, model: str):
     """``sim_cfg`` with ``sim.model = model`` (as given where it already is)."""
-    return sim_cfg if getattr(sim_cfg, "model", "full") == model else replace(sim_cfg, model=model)
+    return sim_cfg if sim_cfg.model == model else replace(sim_cfg, model=model)
 
 
 def simulators(drone, cfg, models, seed: int) -> dict:
@@ -126,7 +126,7 @@ def time_models(drone, drone_cfg, cfg, sims: dict, seconds: float, seed: int, bl
         rows[m] = {**stepping(drone, drone_cfg, sim, m), **speed, "blowups": len(blowups[m]),
                    "blowup_detail": "; ".join(blowups[m] + left[m])}
         if m != "full":
-            rows[m]["basis"] = int(sim.reduced.r) if getattr(sim, "reduced", None) is not None else None
+            rows[m]["basis"] = int(sim.reduced.r) if sim.reduced is not None else None
             rows[m]["left_range"] = len(left[m])
             ok = "full" in live and not blowups["full"] and not blowups[m]
             rows[m]["speedup_vs_full"] = float(np.median(np.array(walls["full"]) / np.array(walls[m]))) if ok else None
@@ -143,8 +143,7 @@ def time_drone(drone, drone_cfg, cfg, seconds: float, seed: int, block: int = 25
 
 def evaluated_elements(drone, sim) -> int:
     """The elements a substep evaluates: the mesh's, or the reduced model's cubature set."""
-    reduced = getattr(sim, "reduced", None)
-    return drone.fem.n_elems if reduced is None else len(reduced.elements)
+    return drone.fem.n_elems if sim.reduced is None else len(sim.reduced.elements)
 
 
 def mesh_row(drone, drone_cfg, model: str = "full") -> dict:
@@ -165,7 +164,7 @@ def reduced_errors(drone, sim, gravity: float, load: float) -> dict:
     """A reduced row's accuracy: its linear statics under the accuracy load against the full
     model's on the same mesh (convergence.reduced_static_errors: the step's rest stiffness)."""
     from sdexp.eval.convergence import reduced_static_errors
-    if isinstance(sim, str) or getattr(sim, "reduced", None) is None:
+    if isinstance(sim, str) or sim.reduced is None:
         return {}
     return {f"{k}_vs_full": v for k, v in reduced_static_errors(drone, sim.reduced, gravity, load).items()}
 
@@ -183,7 +182,7 @@ def drone_config(cfg, name: str):
 def check(run: Run) -> None:
     """Before anything is written: the bench names its models itself (its other series and the
     variants are the full model's)."""
-    model = getattr(run.cfg.sim, "model", "full")
+    model = run.cfg.sim.model
     if model != "full":
         raise UserError(f"sim.model = {model}: bench_sim times the models experiment.params.models names "
                         f"(e.g. [full,reduced]), each beside the full one: allowed sim.model = full here")
