@@ -413,7 +413,7 @@ def test_an_unevenly_spaced_flight_still_blames_its_time_column(tmp_path):
 
 class _BlowingUp:
     """A simulator that diverges on its 30th step (the bench resets it and goes on)."""
-    n_sub, dt, t = 4, 0.0025, 0.0
+    n_sub, dt, t, reduced = 4, 0.0025, 0.0, None
 
     def __init__(self, *args):
         self.steps, self.alive = 0, True
@@ -435,7 +435,7 @@ def test_a_benchmark_that_blows_up_reports_no_speed_anywhere(tmp_path, monkeypat
     monkeypatch.setattr(bench_sim, "Simulator", _BlowingUp)
     drone = SimpleNamespace(num_rotors=2, max_thrust=1.0, dim=2, fem=SimpleNamespace(n_elems=10, order=2, rest=[0] * 8))
     drone_cfg = SimpleNamespace(name="rod", mesh=SimpleNamespace(edge_length=0.1))
-    cfg = SimpleNamespace(sim=SimpleNamespace(control_dt=0.01), noise=None)
+    cfg = SimpleNamespace(sim=SimpleNamespace(control_dt=0.01, model="full"), noise=None)
     row = bench_sim.time_drone(drone, drone_cfg, cfg, seconds=0.5, seed=0)
     assert row["blowups"] == 1 and all(row[k] is None for k in bench_sim.SPEED), row
     rows = [{"series": "drone", **row, "bend_error": 0.01, "compliance_error": 0.02}]
