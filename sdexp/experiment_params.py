@@ -321,10 +321,41 @@ class ReducedGatesParams(Params):
     workers: int = param(2, at_least(1))   # drones built and flown side by side
 
 
+@dataclass
+class DesignRuleParams(Params):
+    """sdexp.eval.design_rule: per drone, the candidates of its open design (``grid``: thickness or a
+    proportion of its shape (drone.params) -> values; every combination) and the drawing the rule
+    stays nearest (``drawn``: key -> value; a key not given: the drone config's own)."""
+    designs: Dict[str, Dict[str, Any]] = param({})
+    drones: Optional[List[str]] = drone_choice(None)   # which of designs (null: all of them)
+    seconds: float = param(10.0, positive("s of static hover held"))
+    workers: int = param(2, at_least(1))
+
+    def check(self) -> None:
+        from sdexp import conf
+        names = conf.names("drone")
+        if not self.designs:
+            raise UserError(f"{PREFIX}designs is empty: give at least one drone's grid")
+        for name, design in self.designs.items():
+            where = f"{PREFIX}designs.{name}"
+            if name not in names:
+                raise UserError(f"{where}: {name!r} is not a drone: choose one of {', '.join(names)}")
+            stray = [k for k in design if k not in ("grid", "drawn")]
+            grid = design.get("grid") or {}
+            if stray or not grid or not all(isinstance(v, (list, tuple)) and len(v) for v in grid.values()):
+                raise UserError(f"{where} = {dict(design)!r}: allowed grid (key -> a non-empty list of "
+                                f"values) and drawn (key -> value)")
+        stray = [n for n in self.drones or [] if n not in self.designs]
+        if stray:
+            raise UserError(f"{PREFIX}drones = {self.drones!r}: {stray[0]!r} has no design to choose: choose "
+                            f"among {', '.join(self.designs)}")
+
+
 # experiment name (its conf/experiment/<name>.yaml) -> the schema of its params
 PARAMS: dict[str, type[Params]] = {
     "ablation_decomposition": AblationDecompositionParams, "ablation_fixed_point": AblationFixedPointParams,
     "bench_control": BenchControlParams, "bench_sim": BenchSimParams, "bench_sweep": BenchSweepParams,
+    "design_rule": DesignRuleParams,
     "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "fleet": FleetParams, "gallery": GalleryParams,
     "hover_deform": HoverDeformParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
     "obstacle": ObstacleParams, "record": RecordParams, "reduced_gates": ReducedGatesParams,

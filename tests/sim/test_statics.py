@@ -40,3 +40,19 @@ def test_how_far_the_rotors_can_bend_a_body_that_stays_level(cache_dir):
     assert deform_reach(*drone("rod")) > 90.0
     assert 0.1 < deform_reach(*drone("engine")) < 5.0
     assert deform_reach(*drone("rainbow")) == 0.0
+
+
+def test_the_static_hover_lifts_the_weight_of_the_shape_it_bends(cache_dir):
+    """static_hover (the design rule's statics): the rod's thrust, trimmed on the shape it bends
+    into, lifts its weight with no tilting torque left and a settled fold: the rule holds. The
+    same rod with a quarter of its thrust range needs more than 60% of it: the rule names that."""
+    from sdexp.sim.rigid.statics import RULE_MAX_SHARE, static_hover
+    cfg = make_config("drone=rod", f"cache_dir={cache_dir}")
+    drone = build_drone(cfg.drone, cfg.cache_dir, cfg.sim.element)
+    hover = static_hover(drone, cfg.sim)
+    assert hover.sane and hover.rule() == "", hover
+    assert hover.lift_residual < 0.02 and hover.torque_residual < 0.02 and hover.swing_deg < 1.0
+    assert 0 < hover.fold_deg < 30 and hover.share < RULE_MAX_SHARE
+    weak = make_config("drone=rod", "drone.max_thrust=2.5", f"cache_dir={cache_dir}")
+    tight = static_hover(build_drone(weak.drone, weak.cache_dir, weak.sim.element), weak.sim, seconds=1.0)
+    assert tight.share > RULE_MAX_SHARE and tight.rule().startswith("largest rotor thrust"), tight

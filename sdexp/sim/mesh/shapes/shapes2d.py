@@ -303,13 +303,13 @@ def _diamond(lx, ly, n, p):
 
 def _elephant(lx, ly, n, p):
     """Elephant seen from the side, facing +X: body, head, a curled trunk, two legs and a
-    tail. Rotors spread evenly along the back."""
+    tail. Rotors spread evenly along the top, from the back onto the head."""
     legs, leg_w, trunk = p["leg_height"] * ly, p["leg_width"] * lx, p["trunk_width"] * lx
     _check(0 < legs < 0.45 * ly and 0 < leg_w < 0.15 * lx and 0 < trunk < 0.1 * lx, "elephant",
            "need 0 < leg_height < 0.45, 0 < leg_width < 0.15, 0 < trunk_width < 0.1")
-    # Beyond these fractions the back slopes down to the tail or into the neck.
-    _check(0.15 <= p["back_start"] <= p["back_end"] <= 0.6, "elephant",
-           "need 0.15 <= back_start <= back_end <= 0.6")
+    # Behind 0.15 the back slopes down to the tail; beyond 0.85 the head falls to the trunk.
+    _check(0.15 <= p["back_start"] <= p["back_end"] <= 0.85, "elephant",
+           "need 0.15 <= back_start <= back_end <= 0.85")
     u = lambda a, b: (a * lx, b * ly)  # noqa: E731  (points as fractions of the bounding box)
     body_y, body_ry = (legs + 0.8 * ly) / 2, (0.8 * ly - legs) / 2
     primitives = [

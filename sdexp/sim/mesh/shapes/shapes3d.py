@@ -582,7 +582,7 @@ def make_orange_peel(size, thickness, num_rotors, num_sensors, params) -> Shape:
     along +Z; a rotor on each petal. ``thickness`` is the peel's (default 0.1 m)."""
     name = "orange_peel"
     p = _params(name, params, {"base_radius": 0.45, "petal_root_width": 0.3, "petal_width": 0.9,
-                               "rotor_inset": 0.45})
+                               "rotor_inset": 0.85})
     _count(name, "5 rotors (one per petal)", 5, num_rotors, "num_rotors")
     # Five petals with round tips of radius w/2, one along +Z, reaching R from the centre,
     # span R (1 + cos 36 deg) + (w/2)(1 - cos 36 deg) along z (the bend takes the rest).
