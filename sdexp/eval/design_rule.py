@@ -35,7 +35,10 @@ log = logging.getLogger(__name__)
 def check(run: Run) -> None:
     """Before anything is written: every drone named, every key one the drone config has (a
     field, or ``params.<name>`` of its shape's proportions)."""
+    names = conf.names("drone")
     for name, design in _designs(run.params).items():
+        if name not in names:
+            raise UserError(f"experiment.params.designs.{name}: {name!r} is not a drone: choose one of {', '.join(names)}")
         drone = conf.drone(name)
         for key in list(design["grid"]) + list(design.get("drawn", {})):
             _value(drone, key, f"experiment.params.designs.{name}")

@@ -11,8 +11,12 @@ the four tasks with the paper's noise and 30 ms delay:
   reach     a diagonal trip of ``reach_lengths`` body lengths (the drone's largest size);
   velocity  the goal moves along +x, its speed ramped from 0 to ``speed`` over ``ramp_seconds``,
             then held ``velocity_seconds``;
-  deform    hover while the odd peripheral sensors (1, 3, ...) bend to ``deform_deg``: settle,
-            ramp, hold, ramp back to flat, hold.
+  deform    hover while the odd peripheral sensors (1, 3, ...) bend to the drone's target: settle,
+            ramp, hold, ramp back to flat, hold. The paper states no amplitude; the rule: the bend
+            the body's rotors reach open loop while it stays level (``statics.deform_reach``) times
+            ``deform_reach_share``, at most ``deform_deg`` (``deform_target``). A target under the
+            task's tolerance is not a task this body can be judged on: its rows say "beyond the
+            body" with the reach, and nothing is flown.
 
 Jobs run side by side (``workers`` processes, one core each); each writes ``jobs/<drone>_seed<k>.json``
 when it ends, so an interrupted fleet resumes with the jobs it has (and the cached data and nets
@@ -61,13 +65,17 @@ def tolerance(task: str, p: FleetParams, trip: float) -> float:
     return {"hover": 0.1, "reach": 0.1 * trip, "velocity": 0.25 * float(p.speed), "deform": 5.0}[task]
 
 
-# a flight against its task's tolerance: it ended within it, survived but missed it, or failed
-OUTCOMES = ("within", "missed", "lost control", "failed")
+# a flight against its task's tolerance: it ended within it, survived but missed it, or failed;
+# or a task the body cannot be judged on (the deform target under its tolerance), not flown
+OUTCOMES = ("within", "missed", "lost control", "failed", "beyond the body")
+BEYOND = "beyond the body"
 
 
 def outcome(row: dict) -> str:
     """One of OUTCOMES: "failed" is a simulator blow-up or a controller failure, "lost control"
     the loss-of-control rule (tilt, arena); a survivor's error unmeasured counts as missed."""
+    if str(row["failure"]).startswith(BEYOND):
+        return BEYOND
     if not row["survived"]:
         return "lost control" if str(row["failure"]).startswith("loss_of_control") else "failed"
     return "within" if float(row["primary_value"]) <= float(row["tolerance"]) else "missed"
@@ -78,6 +86,8 @@ def verdict(row: dict) -> str:
     against 0.1)", "lost control at 1.20 s (tilt 93.1 deg)"."""
     from sdexp.eval.flights import short_reason
     kind = outcome(row)
+    if kind == BEYOND:
+        return str(row["failure"])
     if kind in ("lost control", "failed"):
         return f"{kind} at {row['survival_time']:.2f} s ({short_reason(row['failure'])})"
     value, tol, unit = float(row["primary_value"]), float(row["tolerance"]), UNITS[row["primary"]]
@@ -109,10 +119,16 @@ def body_length(setup) -> float:
     return float((rest.max(axis=0) - rest.min(axis=0)).max())
 
 
-def deform_schedule(n_s: int, p: FleetParams) -> tuple[list, list, float]:
+def deform_target(p: FleetParams, reach_deg: float) -> float:
+    """The deform task's bend target (deg): ``deform_reach_share`` of the body's bend reach, at
+    most ``deform_deg``."""
+    return float(min(float(p.deform_deg), float(p.deform_reach_share) * float(reach_deg)))
+
+
+def deform_schedule(n_s: int, p: FleetParams, target_deg: float) -> tuple[list, list, float]:
     """Keyframes (times, bend targets) of the deform task and its length: flat, the odd sensors
-    up, held, flat again, held."""
-    up = np.array([np.deg2rad(float(p.deform_deg)) if i % 2 == 0 else 0.0 for i in range(n_s)])
+    up to ``target_deg``, held, flat again, held."""
+    up = np.array([np.deg2rad(float(target_deg)) if i % 2 == 0 else 0.0 for i in range(n_s)])
     flat = np.zeros(n_s)
     t, ramp, hold = float(p.settle_seconds), float(p.deform_ramp_seconds), float(p.deform_hold_seconds)
     times, targets = [0.0, t], [flat, flat]
@@ -123,8 +139,10 @@ def deform_schedule(n_s: int, p: FleetParams) -> tuple[list, list, float]:
     return times, [list(x) for x in targets], t
 
 
-def tasks_for(setup, p: FleetParams) -> dict:
-    """name -> (Task, time from which its errors are measured)."""
+def tasks_for(setup, p: FleetParams, reach_deg: float) -> dict:
+    """name -> (Task, time from which its errors are measured), or for a deform task beyond the
+    body (its target, from the body's bend reach ``reach_deg``, under the tolerance) name -> (None,
+    the reason)."""
     dim, n_s = setup.layout.dim, setup.layout.n_s
     start = np.zeros(dim)
     out = {}
@@ -140,7 +158,12 @@ def tasks_for(setup, p: FleetParams) -> dict:
             out[name] = (setup.task(start, start, float(p.ramp_seconds) + float(p.velocity_seconds), velocity=v,
                                     ramp=float(p.ramp_seconds)), float(p.ramp_seconds))
         else:
-            times, targets, seconds = deform_schedule(n_s, p)
+            target, tol = deform_target(p, reach_deg), tolerance(name, p, 0.0)
+            if target < tol:
+                out[name] = (None, f"{BEYOND}: its rotors bend it at most {reach_deg:.2g} deg while it stays level "
+                                   f"(statics.deform_reach), the target {target:.2g} deg is under the {tol:g} deg tolerance")
+                continue
+            times, targets, seconds = deform_schedule(n_s, p, target)
             out[name] = (setup.task(start, start, seconds, bend_times=times, bend_targets=targets),
                          float(p.settle_seconds))
     return out
@@ -164,18 +187,44 @@ def flight_errors(flight, dyn, since: float) -> dict:
 
 
 def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0, cache_dir=None) -> dict:
-    """Whether the body can fly at all, apart from any controller: thrust-to-weight, the largest
-    rotor's share of Tmax in the rest shape's minimum-norm hover thrust, the largest bend (deg)
-    and the drop (m) after holding that thrust ``hold_seconds`` open loop, noise-free, the rank of
-    the rotors' wrench on lift and tilt (3 in 3D, 2 in 2D: what hovering level needs) and in
-    all, the thrust patterns left to deform the body and the largest bend one of them holds while
-    the body stays level (``statics.deform_reach``), the largest bend after holding instead the
-    thrust that keeps the body flattest (``statics.shape_hover_thrust``: whether any thrust the
-    rotors can give without lifting or tilting holds the body open), and the nets' validation error (mean
-    absolute error of the predicted velocity change over that of copying the velocity: 1 = no
-    better than "no change")."""
+    """Whether the body can fly at all, apart from any controller (``body_physics``), and the nets'
+    validation error (mean absolute error of the predicted velocity change over that of copying
+    the velocity: 1 = no better than "no change")."""
+    out = body_physics(drone, sim_cfg, hold_seconds, cache_dir)
+    if trained is not None:
+        for name, h in trained.history.items():
+            kept = h[h["selected"]] if "selected" in h and h["selected"].any() else h.tail(1)
+            out[f"{name}_val_rel_l1"] = float(kept["val_rel_l1"].iloc[0])
+    return out
+
+
+BODY_PHYSICS_FORMAT = 1   # bump when body_physics (or what it calls) changes what it finds
+
+
+def body_physics(drone, sim_cfg, hold_seconds: float = 2.0, cache_dir=None) -> dict:
+    """Thrust-to-weight, the largest rotor's share of Tmax in the rest shape's minimum-norm hover
+    thrust, the largest bend (deg) and the drop (m) after holding that thrust ``hold_seconds``
+    open loop, noise-free, the rank of the rotors' wrench on lift and tilt (3 in 3D, 2 in 2D:
+    what hovering level needs) and in all, the thrust patterns left to deform the body and the
+    largest bend one of them holds while the body stays level (``statics.deform_reach``), the
+    largest bend after holding instead the thrust that keeps the body flattest
+    (``statics.shape_hover_thrust``: whether any thrust the rotors can give without lifting or
+    tilting holds the body open), and the static hover of the deformed body with the design
+    rule's verdict on it (``statics.static_hover``). With ``cache_dir`` found once per body and
+    simulator config (every seed of a drone shares them; the octopus's take minutes)."""
+    if cache_dir is None:
+        return _body_physics(drone, sim_cfg, hold_seconds, None)
+    from sdexp.cache import cached_arrays, content_digest, key_of
+    key = key_of("bodyphysics", BODY_PHYSICS_FORMAT, {"body": content_digest(drone), "sim": content_digest(sim_cfg),
+                                                      "seconds": hold_seconds})
+    made = cached_arrays(cache_dir, key, lambda: {"json": np.array(json.dumps(
+        _body_physics(drone, sim_cfg, hold_seconds, cache_dir)))})
+    return json.loads(str(made["json"]))
+
+
+def _body_physics(drone, sim_cfg, hold_seconds: float, cache_dir) -> dict:
     from sdexp.sim.rigid.geometry import deformation_patterns, rest_hover_thrust, rigid_body, wrench_matrix
-    from sdexp.sim.rigid.statics import deform_reach, hold_state
+    from sdexp.sim.rigid.statics import deform_reach, hold_state, static_hover
 
     fem, g, tmax = drone.fem, float(sim_cfg.gravity), float(drone.max_thrust)
     mass, _, _, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(fem.dim))
@@ -183,21 +232,17 @@ def physics_of(drone, sim_cfg, trained=None, hold_seconds: float = 2.0, cache_di
     level = [1, 3, 5] if W.shape[0] == 6 else [1, 2]
     hover = rest_hover_thrust(drone, g)
     first, st, sane = hold_state(drone, sim_cfg, hover, hold_seconds)
-    out = {"mass_kg": float(mass), "rotors": int(len(hover)), "sensors": int(drone.layout.n_s),
-           "thrust_to_weight": float(len(hover) * tmax / (mass * g)),
-           "hover_thrust_max_share": float(np.abs(hover).max() / tmax),
-           "hover_fold_deg": float(np.rad2deg(np.abs(st.s)).max()) if st.s.size else 0.0,
-           "hover_drop_m": float(first.p[1] - st.p[1]),
-           "hover_hold_blew_up": not sane,
-           "lift_tilt_rank": int(np.linalg.matrix_rank(W[level])), "lift_tilt_needed": len(level),
-           "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1]),
-           "deform_reach_deg": deform_reach(drone, sim_cfg, hold_seconds),
-           **shape_hover_fold(drone, sim_cfg, hold_seconds, cache_dir)}
-    if trained is not None:
-        for name, h in trained.history.items():
-            kept = h[h["selected"]] if "selected" in h and h["selected"].any() else h.tail(1)
-            out[f"{name}_val_rel_l1"] = float(kept["val_rel_l1"].iloc[0])
-    return out
+    return {"mass_kg": float(mass), "rotors": int(len(hover)), "sensors": int(drone.layout.n_s),
+            "thrust_to_weight": float(len(hover) * tmax / (mass * g)),
+            "hover_thrust_max_share": float(np.abs(hover).max() / tmax),
+            "hover_fold_deg": float(np.rad2deg(np.abs(st.s)).max()) if st.s.size else 0.0,
+            "hover_drop_m": float(first.p[1] - st.p[1]),
+            "hover_hold_blew_up": not sane,
+            "lift_tilt_rank": int(np.linalg.matrix_rank(W[level])), "lift_tilt_needed": len(level),
+            "wrench_rank": int(np.linalg.matrix_rank(W)), "deformation_patterns": int(deformation_patterns(drone).shape[1]),
+            "deform_reach_deg": deform_reach(drone, sim_cfg, hold_seconds),
+            **shape_hover_fold(drone, sim_cfg, hold_seconds, cache_dir),
+            **static_hover(drone, sim_cfg, cache_dir=cache_dir).row()}
 
 
 def shape_hover_fold(drone, sim_cfg, hold_seconds: float = 2.0, cache_dir=None) -> dict:
@@ -408,8 +453,14 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         result["seconds"]["physics"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         trip = float(p.reach_lengths) * body_length(setup)
-        for task_name, (task, since) in tasks_for(setup, p).items():
+        for task_name, (task, since) in tasks_for(setup, p, result["physics"]["deform_reach_deg"]).items():
             for ctl_name in p.controllers:
+                if task is None:   # beyond the body: since holds the reason
+                    result["rows"].append({
+                        "drone": name, "seed": int(seed), "task": task_name, "controller": ctl_name, "survived": False,
+                        "survival_time": np.nan, "failure": since, "seconds": 0.0, "final_error": np.nan,
+                        "primary": PRIMARY[task_name], "primary_value": np.nan, "tolerance": tolerance(task_name, p, trip)})
+                    continue
                 phase = starting(f"{task_name} under {ctl_name}")
                 sim = setup.simulator()
                 flight, m = setup.fly(sim, setup.controller(ctl_name, sim), task, f"{name} {task_name}")
@@ -421,7 +472,9 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
                     "survived": bool(m["survived"]), "survival_time": m["survival_time"], "failure": m["failure"],
                     "seconds": task.seconds, "final_error": m["final_error"], **errors,
                     "max_tilt_deg": m["max_tilt_deg"], "thrust_usage": m["thrust_usage"],
-                    "primary": primary, "primary_value": value, "tolerance": tolerance(task_name, p, trip)})
+                    "primary": primary, "primary_value": value, "tolerance": tolerance(task_name, p, trip),
+                    **({"target_deg": deform_target(p, result["physics"]["deform_reach_deg"])}
+                       if task_name == "deform" else {})})
         result["seconds"]["flights"] = time.perf_counter() - t1
     except Exception as err:   # the drone's failure is a finding, recorded; the fleet goes on
         result["error"] = f"{phase}: {type(err).__name__}: {err}".splitlines()[0][:500]
@@ -518,6 +571,7 @@ def run(run: Run) -> dict:
     for (drone, task, ctl), grp in table[table["task"] != "-"].groupby(["drone", "task", "controller"]):   # flown rows
         out[f"{drone}_{task}_{ctl}_survived"] = int(grp["survived"].sum())
         out[f"{drone}_{task}_{ctl}_within"] = int((grp["outcome"] == "within").sum())
+        out[f"{drone}_{task}_{ctl}_beyond"] = int((grp["outcome"] == BEYOND).sum())
         out[f"{drone}_{task}_{ctl}_{grp['primary'].iloc[0]}_median"] = float(grp["primary_value"].median())
     return out
 
@@ -536,16 +590,16 @@ def _invocations(out_dir: Path, wall: float, jobs_run: int) -> list[dict]:
 
 def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> None:
     """Jobs written before a diagnostic joined the physics (``model_at_hover`` and its data fit,
-    ``deform_reach_deg``, ``shape_hover_fold_deg``; resumed runs) get it from their cached drone, data and nets, written back
+    ``deform_reach_deg``, ``shape_hover_fold_deg``, the static hover; resumed runs) get it from their cached drone, data and nets, written back
     to the job's file; nothing is flown again."""
     from sdexp.eval.controllers import LEARNED
     from sdexp.eval.flights import Setup
-    from sdexp.sim.rigid.statics import deform_reach
+    from sdexp.sim.rigid.statics import deform_reach, static_hover
 
     for (name, seed), res in results.items():
         phys = res["physics"]
         if phys is None or all(k in phys for k in ("model_accel_error_at_release", "deform_reach_deg",
-                                                    "shape_hover_fold_deg")):
+                                                    "shape_hover_fold_deg", "design_rule")):
             continue
         setup = Setup(job_config(cfg, name, seed, p), progress=False)
         if "model_accel_error_at_release" not in phys and any(c in LEARNED for c in p.controllers):
@@ -554,6 +608,8 @@ def _fill_diagnostics(cfg, p: FleetParams, results: dict, jobs_dir: Path) -> Non
             phys["deform_reach_deg"] = deform_reach(setup.drone, setup.cfg.sim)
         if "shape_hover_fold_deg" not in phys:
             phys.update(shape_hover_fold(setup.drone, setup.cfg.sim, cache_dir=setup.cfg.cache_dir))
+        if "design_rule" not in phys:
+            phys.update(static_hover(setup.drone, setup.cfg.sim, cache_dir=setup.cfg.cache_dir).row())
         write_job(job_path(jobs_dir, name, seed), res)
 
 
@@ -604,7 +660,9 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
                 sel = table[(table["drone"] == drone) & (table["controller"] == ctl) & (table["task"] == task)] \
                     if len(table) and "task" in table else table.iloc[:0]
                 ok = sel[sel["survived"].astype(bool)] if len(sel) else sel
-                if len(ok):
+                if len(sel) and (sel["outcome"] == BEYOND).all():
+                    colour, text = "#f0f0f0", "beyond\nthe body"
+                elif len(ok):
                     med = float(ok["primary_value"].median())
                     colour = cmap(min(med / float(ok["tolerance"].iloc[0]), 2.0) / 2.0)
                     text = f"{med:.2g} {UNITS[ok['primary'].iloc[0]]}\n{len(ok)}/{seeds}"
@@ -622,7 +680,8 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
         for s in ax.spines.values():
             s.set_visible(False)
     fig.suptitle(f"the fleet over {seeds} seeds: median error of the flights that survived "
-                 "(green 0, yellow = the task's tolerance, red 2x), survived/seeds; grey x: none survived",
+                 "(green 0, yellow = the task's tolerance, red 2x), survived/seeds; grey x: none survived; "
+                 "beyond the body: a deform target under its tolerance, not flown",
                  fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.95))
     save_figure(fig, path, dpi=110)
@@ -638,8 +697,9 @@ def summary(params: FleetParams, metrics: dict) -> str:
         parts = []
         for task in params.tasks:
             count = {end: sum(v for k, v in metrics.items() if k.endswith(f"_{task}_{ctl}_{end}"))
-                     for end in ("within", "survived")}
+                     for end in ("within", "survived", "beyond")}
             parts.append(f"{task} {count['within']} within, {count['survived'] - count['within']} missed, "
-                         f"{flown - count['survived']} lost")
+                         f"{flown - count['survived'] - count['beyond']} lost"
+                         + (f", {count['beyond']} beyond the body" if count["beyond"] else ""))
         lines.append(f"  {ctl}, of {flown} flights a task against its tolerance: " + "; ".join(parts))
     return "\n".join(lines)

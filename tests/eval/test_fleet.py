@@ -34,6 +34,12 @@ def test_a_reduced_fleet_flies_every_task_and_matches_its_reference(tmp_path, ca
                      "model_accel_error_at_release", "model_tilt_accel_error_at_release"]] >= 0).all().all()
     assert (physics[["data_torque_map_error_sent", "data_torque_map_error_acting", "data_level_transitions"]] >= 0).all().all()
     assert (tmp_path / "fleet.png").exists() and m["jobs"] == 2 and m["jobs_failed"] == 0
+    # the engine (steel-stiff beside the rod) bends under 2 deg: its deform target, half of that, is
+    # under the 5 deg tolerance, so not flown; the rod's is the task's 15 deg
+    deform = table[table["task"] == "deform"].set_index(["drone", "controller"])
+    assert (deform.loc["engine", "outcome"] == "beyond the body").all() and deform.loc["engine", "failure"].str.contains("deg").all()
+    assert (deform.loc["rod", "target_deg"] == 15.0).all() and (deform.loc["rod", "outcome"] != "beyond the body").all()
+    assert (physics["design_rule"] == "holds").all() and (physics["static_hover_share"] < 0.6).all()
     assert m["wall_seconds"] > 0
     # the reach task is a diagonal trip of one body length (the rod: 8 m long)
     reach = table[(table["drone"] == "rod") & (table["task"] == "reach")]
@@ -110,7 +116,7 @@ def test_the_data_rule_scales_with_the_state_channels():
 
 def test_the_deform_task_bends_the_odd_sensors_then_releases_them():
     p = FleetParams(settle_seconds=2.0, deform_ramp_seconds=1.0, deform_hold_seconds=3.0, deform_deg=15.0)
-    times, targets, seconds = fleet.deform_schedule(4, p)
+    times, targets, seconds = fleet.deform_schedule(4, p, fleet.deform_target(p, 120.0))
     assert seconds == pytest.approx(10.0) and times == [0.0, 2.0, 3.0, 6.0, 7.0, 10.0]
     up = np.deg2rad(15.0)
     np.testing.assert_allclose(targets[2], [up, 0, up, 0])
@@ -132,7 +138,7 @@ def test_the_velocity_task_ramps_and_the_reach_task_is_diagonal(cache_dir):
         def task(self, start, target, seconds, **kw):
             from sdexp.control.tasks import Task
             return Task(start=start, target=target, seconds=seconds, n_s=8, **kw)
-    tasks = fleet.tasks_for(FakeSetup(), cfg.experiment.params)
+    tasks = fleet.tasks_for(FakeSetup(), cfg.experiment.params, 120.0)
     reach, _ = tasks["reach"]
     assert np.linalg.norm(reach.target) == pytest.approx(3.6) and np.ptp(reach.target) == 0   # one body length
     velocity, since = tasks["velocity"]
@@ -267,6 +273,8 @@ def _row(survived=True, value=0.05, failure="", task="hover"):
     (_row(False, 3.0, "loss_of_control: tilt 93.1 deg > 90"), "lost control", "lost control at 1.20 s (tilt 93.1 deg)"),
     (_row(False, 3.0, "simulator: non-finite state"), "failed", "failed at 1.20 s (non-finite state)"),
     (_row(value=float("nan")), "missed", "missed: survived, its final_error not measured (tolerance 0.1 m)"),
+    (_row(False, float("nan"), "beyond the body: its rotors bend it at most 1.7 deg", "deform"), "beyond the body",
+     "beyond the body: its rotors bend it at most 1.7 deg"),
 ])
 def test_every_flight_is_said_against_its_tolerance(row, kind, words):
     assert fleet.outcome(row) == kind and fleet.verdict(row) == words
