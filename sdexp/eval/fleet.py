@@ -65,6 +65,10 @@ def tolerance(task: str, p: FleetParams, trip: float) -> float:
     return {"hover": 0.1, "reach": 0.1 * trip, "velocity": 0.25 * float(p.speed), "deform": 5.0}[task]
 
 
+# the designs the paper trains controllers for (supplement B: "For 2D drones, we only train
+# controllers of the rod model"): its claim of breadth is about these seven
+PAPER_DESIGNS = ("donut", "star", "flower", "leaf", "octopus", "orange_peel", "rod")
+
 # a flight against its task's tolerance: it ended within it, survived but missed it, or failed;
 # or a task the body cannot be judged on (the deform target under its tolerance), not flown
 OUTCOMES = ("within", "missed", "lost control", "failed", "beyond the body")
