@@ -172,6 +172,18 @@ class NoiseConfig:
 
 
 @dataclass
+class AggregationConfig:
+    """data.aggregation: on-policy data aggregation (sdexp.eval.aggregation). After the random
+    thrust holds, ``rounds`` times: ours flies ``flights`` flights of ``seconds`` to goals drawn
+    within ``reach`` body lengths of its release, their transitions (read from the IMUs as the
+    data's) join the data, the nets are trained again. 0 rounds: the paper's data alone."""
+    rounds: int = param(0, between(0, 10, unit="rounds"))
+    flights: int = param(8, between(1, 1000, unit="flights a round"))
+    seconds: float = param(5.0, between(0.1, 600, unit="s a flight"))
+    reach: float = param(0.5, between(0, 10, unit="body lengths"))
+
+
+@dataclass
 class DataConfig:
     """Training data (supplement F): random thrust holds from the undeformed drone at rest."""
     samples: int = param(150_000, positive())   # transitions (one per 10 ms control step)
@@ -194,6 +206,9 @@ class DataConfig:
     # config, which carries the model the data were made on (sdexp.model.dataset.dataset_spec)
     sim_model: Optional[str] = param(None, choices((None,) + MODELS, **NOT_KEY))
     validation_fraction: float = param(0.1, between(0, 1, "()"))   # held-out episodes
+    # ours' own flights added to the data in rounds (off by default, the paper's data alone); the
+    # random holds are the same with or without (sdexp.model.dataset.dataset_spec leaves it out)
+    aggregation: AggregationConfig = field(default_factory=AggregationConfig, metadata=UNLESS_DEFAULT)
 
 
 @dataclass

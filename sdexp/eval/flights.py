@@ -44,8 +44,8 @@ class Setup:
 
     def _identified(self):
         if self._learned is None:
-            from sdexp.model.identification import identify
-            self._learned = identify(self.cfg, self.progress)
+            from sdexp.eval.aggregation import identify_aggregated
+            self._learned = identify_aggregated(self.cfg, self.progress)
         return self._learned
 
     data = property(lambda self: self._identified()[0])

@@ -73,6 +73,12 @@ class Dataset:
     def __len__(self) -> int:
         return len(self.arrays["u"])
 
+    def joined(self, arrays: dict[str, np.ndarray], label: str) -> "Dataset":
+        """This dataset and ``arrays`` (the same keys; their episodes numbered after this one's)."""
+        extra = {**arrays, "episode": arrays["episode"] + int(self.arrays["episode"].max()) + 1}
+        out = {k: np.concatenate([v, extra[k].astype(v.dtype)]) for k, v in self.arrays.items()}
+        return Dataset(out, {**self.meta, "joined": [*self.meta.get("joined", []), f"{label}: {len(arrays['u'])}"]})
+
     def split(self, validation_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """(train, validation) transition indices, split by whole episodes: episodes in a random
         order (``seed``) go to validation until it holds the count closest to
@@ -105,7 +111,8 @@ def dataset_spec(cfg, chunk_samples: int | None = None) -> dict:
         # a task's scenery left out: the data are free flights (supplement F); on data.sim_model if set
         "sim": replace(cfg.sim, obstacles=[], model=data.sim_model or cfg.sim.model),
         "noise": cfg.noise,
-        "data": data,
+        # the random holds alone: ours' flights (data.aggregation) join them after, in sdexp.eval.aggregation
+        "data": replace(data, aggregation=type(data.aggregation)()),
         "seed": int(cfg.seed),
         "chunk_samples": int(chunk_samples),
         "cache_dir": str(Path(cfg.cache_dir).expanduser()),

@@ -176,7 +176,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     draw = spec["draw"] if "draw" in spec else thrust_draw(drone, spec["data"], sim_config(spec), spec["cache_dir"])
     data = spec["data"]
     dt = float(spec["sim"].control_dt)
-    rows = _Rows(n, widths(drone.layout.dim, drone.layout.n_s, drone.num_rotors), progress)
+    rows = Rows(n, widths(drone.layout.dim, drone.layout.n_s, drone.num_rotors), progress)
     ends: Counter = Counter()
     ep, empty = 0, 0
     while rows.i < n:
@@ -184,8 +184,8 @@ def generate_chunk(spec: dict, chunk: int, n: int,
         cmds = commands(drone, data, draw, dt, np.random.default_rng(ss_thrust))
         sim.rng = np.random.default_rng(ss_noise)
         start = rows.i
-        ends[_episode(sim, drone.layout, cmds, rows, ep, dt, max(1, int(round(data.episode_seconds / dt))),
-                      float(data.region) ** 2)] += 1
+        ends[episode(sim, drone.layout, lambda t, st: next(cmds), rows, ep, dt,
+                     max(1, int(round(data.episode_seconds / dt))), float(data.region) ** 2)] += 1
         if rows.i == start:
             empty += 1
             if empty >= MAX_EMPTY_EPISODES:
@@ -201,7 +201,7 @@ def generate_chunk(spec: dict, chunk: int, n: int,
     return arrays, info
 
 
-class _Rows:
+class Rows:
     """A chunk's transitions, filled row by row (float64 while filled, float32 when done), with
     progress reported every 200 rows."""
 
@@ -232,16 +232,19 @@ class _Rows:
         return arrays
 
 
-def _episode(sim, layout, cmds, rows: _Rows, ep: int, dt: float, ep_steps: int, region2: float) -> str:
-    """One episode from rest into ``rows``, until the simulator fails (its reason), the drone
-    leaves the region, the episode's time is up (timeout) or the chunk is full (chunk_end)."""
+def episode(sim, layout, act: Callable[[float, State], np.ndarray], rows: Rows, ep: int, dt: float, ep_steps: int,
+            region2: float) -> str:
+    """One episode from rest into ``rows``, each command ``act(t, state read before the step)``
+    (the random holds' next draw, or a controller's: sdexp.eval.aggregation), until the simulator
+    fails (its reason), the drone leaves the region, the episode's time is up (timeout) or the
+    chunk is full (chunk_end)."""
     r = sim.reset()
     st = decompose(r, layout)
     rw, rwd = raw_state(r, st, layout)
     p0 = st.p.copy()
     k = 0
     while True:
-        u = next(cmds)
+        u = act(k * dt, st)
         r = sim.step(u)
         if not sim.alive:
             return sim.failure.reason

@@ -17,10 +17,16 @@ def identify(cfg, progress: bool = True) -> tuple[Dataset, TrainedNets, LearnedD
     ``model.ensemble`` K > 1, each net is the mean of K trained from member seeds, each member
     cached as the nets of ensemble 1 at its seed."""
     data = load_dataset(cfg)
+    return (data, *identify_on(cfg, data, progress))
+
+
+def identify_on(cfg, data: Dataset, progress: bool = True) -> tuple[TrainedNets, LearnedDynamics]:
+    """(trained d/g/h, LearnedDynamics) of ``cfg``'s model trained on ``data`` (the config's own, or
+    more: sdexp.eval.aggregation); the nets cached by the data's content."""
     one = dataclasses.replace(cfg.model, ensemble=1)
     trained = ensemble([train_models(data, one, member_seed(cfg.seed, k), cfg.cache_dir,
                                      float(cfg.data.validation_fraction), DECOMPOSED, progress)
                         for k in range(int(cfg.model.ensemble))])
     dyn = LearnedDynamics.from_trained(trained, data, float(cfg.sim.control_dt), int(cfg.model.horizon),
                                        int(cfg.model.command_delay), str(cfg.model.frame))
-    return data, trained, dyn
+    return trained, dyn
