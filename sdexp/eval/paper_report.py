@@ -461,8 +461,12 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
              "(the data rule: transitions per state channel). Per task: the seeds in which ours ends within the task's "
              "tolerance / seeds, the median error of the flights that survived, and the rigid LQR's seeds within. "
              "**Bold**: flies (every seed within); *italic*: by the median only (every seed survives, the median "
-             "within). The deform target is half the body's bend reach, at most 15 deg; under the 5 deg tolerance "
-             "the task is beyond the body and not flown. Physics of each body, apart from any controller: "
+             "within). " + (
+                 "The deform target is half the body's bend reach, at most 15 deg; under the 5 deg tolerance the task "
+                 "is beyond the body and not flown (docs/designs.md). " if "deform_reach_share" in params else
+                 f"The deform target is {params.get('deform_deg', 15)} deg for every body (this run predates the "
+                 "amplitude rule of docs/designs.md). ") +
+             "Physics of each body, apart from any controller: "
              "thrust-to-weight, its static hover (the design rule's statics: the largest rotor's share of Tmax / the "
              "settled fold in deg), the largest bend one thrust pattern without net lift or tilt holds (its bend "
              "reach); the learned model: the nets' validation error against copying the velocity (d / g / h), and "
