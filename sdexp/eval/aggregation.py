@@ -58,7 +58,7 @@ def round_transitions(cfg, data, trained, dyn, round_: int) -> tuple[dict, Count
         "model": config_key(cfg.model), "drone": config_key(cfg.drone), "sim": config_key(replace(cfg.sim, obstacles=[])),
         "noise": config_key(cfg.noise), "aggregation": config_key(agg), "region": float(cfg.data.region),
         "seed": int(cfg.seed), "round": int(round_)})
-    made = cached_arrays(cfg.cache_dir, key, lambda: _fly_round(cfg, dyn, round_))
+    made = cached_arrays(cfg.cache_dir, key, lambda: _fly_round(cfg, data, trained, dyn, round_))
     ends = Counter({str(k): int(v) for k, v in zip(made.pop("end_names"), made.pop("end_counts"))})
     return made, ends
 
@@ -73,11 +73,11 @@ class _Ended(Exception):
     """A flight of a round ends before its time (its reason)."""
 
 
-def _fly_round(cfg, dyn, round_: int) -> dict:
+def _fly_round(cfg, data, trained, dyn, round_: int) -> dict:
     from sdexp.control.lqr import LqrFailure
     from sdexp.control.rollout import LossOfControl
     from sdexp.control.tasks import Task
-    from sdexp.eval.controllers import ours
+    from sdexp.eval.controllers import build
     from sdexp.model.generate import Rows, episode, widths
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
@@ -98,7 +98,7 @@ def _fly_round(cfg, dyn, round_: int) -> dict:
         goal_rng = np.random.default_rng(ss_goal)
         offset = goal_rng.normal(size=lay.dim)
         offset *= float(agg.reach) * length * goal_rng.uniform() ** (1.0 / lay.dim) / max(np.linalg.norm(offset), 1e-12)
-        controller = ours(cfg, dyn, drone.max_thrust)
+        controller = build("ours", cfg, sim, dyn, data, trained, progress=False)   # as the experiments fly it
         sim.reset()   # where it rests: the episode resets to the same state
         p0 = sim.state(noisy=False).p
         task = Task(start=p0, target=p0 + offset, seconds=float(agg.seconds), n_s=lay.n_s)

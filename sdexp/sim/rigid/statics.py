@@ -238,7 +238,7 @@ def _static_hover(drone, sim_cfg, seconds, settle, trim_every, gain, cache_dir) 
     sim = Simulator(drone, replace(sim_cfg, obstacles=[], model="full"), NoiseConfig(enabled=False), seed=0)
     sim.reset()
     dt = float(sim_cfg.control_dt)
-    steps, keep = int(round(seconds / dt)), max(1, int(round(settle / dt)))
+    steps, keep = max(1, int(round(seconds / dt))), max(1, int(round(settle / dt)))
     tilt = [3, 5] if dim == 3 else [2]
     folds = []
     for k in range(steps):
