@@ -45,7 +45,7 @@ def identify_aggregated(cfg, progress: bool = True):
             log.warning(f"sdexp: data aggregation round {r}: every flight failed before its first transition "
                         f"({', '.join(sorted(ends))}); the round adds nothing, the next flies the same nets")
             continue
-        data = data.joined(flown, f"aggregation round {r}")
+        data = data.joined(flown, f"round {r} ({', '.join(f'{k} {v}' for k, v in sorted(ends.items()))})")
         trained, dyn = identify_on(cfg, data, progress)
     return data, trained, dyn
 

@@ -454,6 +454,8 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         learned = any(c in LEARNED for c in p.controllers)
         result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained if learned else None,
                                           cache_dir=job_cfg.cache_dir), **(model_at_hover(setup) if learned else {})}
+        if learned and setup.data.meta.get("joined"):   # data.aggregation: what each round added
+            result["physics"].update(data_transitions=len(setup.data), data_rounds="; ".join(setup.data.meta["joined"]))
         result["seconds"]["physics"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         trip = float(p.reach_lengths) * body_length(setup)

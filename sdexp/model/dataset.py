@@ -77,7 +77,7 @@ class Dataset:
         """This dataset and ``arrays`` (the same keys; their episodes numbered after this one's)."""
         extra = {**arrays, "episode": arrays["episode"] + int(self.arrays["episode"].max()) + 1}
         out = {k: np.concatenate([v, extra[k].astype(v.dtype)]) for k, v in self.arrays.items()}
-        return Dataset(out, {**self.meta, "joined": [*self.meta.get("joined", []), f"{label}: {len(arrays['u'])}"]})
+        return Dataset(out, {**self.meta, "joined": [*self.meta.get("joined", []), f"{label}: {len(arrays['u'])} transitions"]})
 
     def split(self, validation_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """(train, validation) transition indices, split by whole episodes: episodes in a random

@@ -33,6 +33,7 @@ def test_rounds_add_ours_flights_to_the_holds_and_retrain(cache_dir):
     np.testing.assert_array_equal(again.data.arrays["p"], agg.data.arrays["p"])
     # the random holds' cache is the same with and without aggregation
     assert agg.data.meta.get("cached") and len(agg.data.meta["joined"]) == 2
+    assert agg.data.meta["joined"][0].startswith("round 1 (") and "transitions" in agg.data.meta["joined"][0]
 
 
 @pytest.mark.parametrize("override, words", [
