@@ -380,9 +380,44 @@ def _fleet_cell(table, drone: str, task: str, seeds: int) -> tuple[bool, bool, s
     return every, median, text
 
 
-def _why(table, drone: str, task: str, physics_rule: str) -> str:
+def _privileged(results: Path, jobs) -> tuple[object, set]:
+    """results/fleet_reduced_lqr/ (the privileged reduced-model LQR over the fleet's tasks), when
+    committed: its flights, and the drones whose body there differs from the fleet's (their rest
+    hover's thrust share or thrust-to-weight: another design), whose flights say nothing here."""
+    import pandas as pd
+    folder = results / "fleet_reduced_lqr"
+    if not (folder / "fleet.csv").is_file():
+        return None, set()
+    committed.load(folder, "fleet")   # whole, or a clear error
+    other = pd.read_csv(folder / "physics.csv").groupby("drone").first()
+    mine = jobs.groupby("drone").first()
+    keys = [k for k in ("hover_thrust_max_share", "thrust_to_weight") if k in mine and k in other]
+    changed = {d for d in mine.index.intersection(other.index)
+               if not all(np.isclose(mine.loc[d, k], other.loc[d, k]) for k in keys)}
+    return pd.read_csv(folder / "fleet.csv"), changed
+
+
+def _side(privileged, changed: set, drone: str, task: str, seeds: int, physics_rule: str) -> str:
+    """Which side holds a pair ours does not fly: physics where the body has no static hover (the
+    design rule's statics); learning where the privileged reduced-model LQR flies it in every seed
+    of its run; open where neither says."""
+    if physics_rule not in ("", "holds", "nan"):
+        return f"physics: no static hover ({physics_rule})"
+    if privileged is None or drone in changed:
+        return "open: no privileged flight of this design" if privileged is not None else ""
+    rows = privileged[(privileged["drone"] == drone) & (privileged["task"] == task)
+                      & (privileged["controller"] == "reduced_lqr")]
+    if not len(rows):
+        return "open: the privileged controller does not fly this task"
+    n = len(set(rows["seed"]))
+    if _flies(rows, n):
+        return f"learning: the privileged reduced-model LQR flies it in every one of its {n} seeds"
+    return f"open: the privileged reduced-model LQR does not either ({int((_outcomes(rows) == 'within').sum())}/{n} within)"
+
+
+def _why(table, drone: str, task: str, physics_rule: str, side: str = "") -> str:
     """Why ours does not fly a pair in every seed, from its flights' outcomes (and the design
-    rule's verdict on the body where it fails)."""
+    rule's verdict on the body where it fails), and which side holds it (``_side``)."""
     from sdexp.eval.fleet import BEYOND, UNITS
     rows = table[(table["drone"] == drone) & (table["task"] == task) & (table["controller"] == "ours")]
     kinds = _outcomes(rows)
@@ -400,8 +435,7 @@ def _why(table, drone: str, task: str, physics_rule: str) -> str:
         else:
             times = mine["survival_time"].astype(float) if "survival_time" in mine else []
             parts.append(f"{len(mine)} {kind}" + (f" at {span(times, 1)} s" if len(times) else ""))
-    rule = "" if physics_rule in ("", "holds", "nan") else f"; the body: no static hover ({physics_rule})"
-    return ", ".join(parts) + rule
+    return ", ".join(parts) + (f". {side[0].upper()}{side[1:]}" if side else "")
 
 
 def _physics_cells(physics, drone: str) -> list[str]:
@@ -489,8 +523,12 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     beyond = [(d, t) for d in drones if d not in PAPER_DESIGNS for t in tasks]
     misses = [(d, t) for d, t in paper if not every[(d, t)]]
     if misses:
-        lines += ["Why each pair of the paper's designs that does not fly misses (ours' flights over the seeds):\n"]
-        lines += [f"- {d} {t}: {_why(table, d, t, rules.get(d, ''))}" for d, t in misses] + [""]
+        privileged, changed = _privileged(results, jobs)
+        lines += ["Why each pair of the paper's designs that does not fly misses (ours' flights over the seeds), and "
+                  "which side holds it: physics (no static hover, docs/designs.md), learning (the privileged "
+                  "reduced-model LQR of `results/fleet_reduced_lqr/` flies it in every seed), or open:\n"]
+        lines += [f"- {d} {t}: {_why(table, d, t, rules.get(d, ''), _side(privileged, changed, d, t, seeds, rules.get(d, '')))}"
+                  for d, t in misses] + [""]
     job_time = ""
     if {"learning_seconds", "flights_seconds"} <= set(jobs.columns):
         job_time = (f"; job time {jobs['learning_seconds'].sum() / 3600:.1f} h learning (data and nets; "

@@ -93,6 +93,21 @@ def test_the_fleet_verdict_counts_the_drone_task_pairs_that_fly(tmp_path):
     assert "wall time: 0.8 h (and 10 min of diagnostics filled in later from the caches)" in render(tmp_path)
 
 
+def test_each_pair_ours_misses_is_said_learning_or_open_beside_the_privileged_controller(tmp_path):
+    """results/fleet_reduced_lqr/, when committed: a pair the privileged reduced-model LQR flies in
+    every seed is ours' learning to fix; one it loses too stays open."""
+    import pandas as pd
+    _fleet_run(tmp_path / "fleet", {"star": [0.05, 0.3], "rod": [0.3, 0.3]})
+    _fleet_run(tmp_path / "fleet_reduced_lqr", {"star": [0.01, 0.02], "rod": [None, None]})
+    table = pd.read_csv(tmp_path / "fleet_reduced_lqr" / "fleet.csv")
+    table["controller"] = table["controller"].replace({"ours": "reduced_lqr"})
+    table.to_csv(tmp_path / "fleet_reduced_lqr" / "fleet.csv", index=False)
+    text = render(tmp_path)
+    assert "- star hover: 1 within (0.05 m against 0.1), 1 missed (0.30 m against 0.1). Learning: the privileged " \
+           "reduced-model LQR flies it in every one of its 2 seeds" in text
+    assert "- rod hover: 2 missed (0.30 m against 0.1). Open: the privileged reduced-model LQR does not either (0/2 within)" in text
+
+
 def test_the_fleet_through_a_low_pass_is_counted_beside_it(tmp_path):
     """results/fleet_lowpass/, when committed: the pairs each controller flies there, beside the
     rigid LQR's here; the verdict stays the fleet's own."""
