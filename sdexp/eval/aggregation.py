@@ -38,14 +38,14 @@ def identify_aggregated(cfg, progress: bool = True):
     agg = cfg.data.aggregation
     for r in range(1, int(agg.rounds) + 1):
         flown, ends = round_transitions(cfg, data, trained, dyn, r)
-        got = len(flown["u"])
+        got, how = len(flown["u"]), ", ".join(f"{k} {v}" for k, v in sorted(ends.items()))
         log.info(f"sdexp: data aggregation round {r} of {agg.rounds}: {agg.flights} flights of ours, "
-                 f"{got} transitions added to {len(data)} ({', '.join(f'{k} {v}' for k, v in sorted(ends.items()))})")
+                 f"{got} transitions added to {len(data)} ({how})")
         if got == 0:
             log.warning(f"sdexp: data aggregation round {r}: every flight failed before its first transition "
                         f"({', '.join(sorted(ends))}); the round adds nothing, the next flies the same nets")
             continue
-        data = data.joined(flown, f"round {r} ({', '.join(f'{k} {v}' for k, v in sorted(ends.items()))})")
+        data = data.joined(flown, f"round {r} ({how})")
         trained, dyn = identify_on(cfg, data, progress)
     return data, trained, dyn
 
@@ -78,6 +78,7 @@ def _fly_round(cfg, data, trained, dyn, round_: int) -> dict:
     from sdexp.control.rollout import LossOfControl
     from sdexp.control.tasks import Task
     from sdexp.eval.controllers import build
+    from sdexp.eval.flights import drone_length
     from sdexp.model.generate import Rows, episode, widths
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator
@@ -89,8 +90,7 @@ def _fly_round(cfg, data, trained, dyn, round_: int) -> dict:
     dt = float(sim_cfg.control_dt)
     steps = max(1, int(round(float(agg.seconds) / dt)))
     rows = Rows(int(agg.flights) * steps, widths(lay.dim, lay.n_s, drone.num_rotors), None)
-    size = list(cfg.drone.size)
-    length = float(max(size)) if size else float(np.ptp(drone.fem.rest, axis=0).max())
+    length = drone_length(cfg.drone, drone)
     ends: Counter = Counter()
     sim = Simulator(drone, sim_cfg, cfg.noise, seed=0)
     for flight in range(int(agg.flights)):
@@ -107,8 +107,7 @@ def _fly_round(cfg, data, trained, dyn, round_: int) -> dict:
         sim.rng = np.random.default_rng(ss_noise)   # the flight's noise, from its own seed
 
         def act(t, state):
-            reason = lost.check(state) if t > 0 else None
-            if reason is not None:
+            if lost.check(state) is not None:
                 raise _Ended("loss of control")
             u = np.asarray(controller.act(t, state), dtype=float)
             if not np.all(np.isfinite(u)):

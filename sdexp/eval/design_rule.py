@@ -33,8 +33,8 @@ log = logging.getLogger(__name__)
 
 
 def check(run: Run) -> None:
-    """Before anything is written: every drone named, every key one the drone config has (a
-    field, or ``params.<name>`` of its shape's proportions)."""
+    """Before anything is written: every drone named, every key one the rule may choose (the
+    thickness, or one of the drone's shape's proportions, drone.params)."""
     names = conf.names("drone")
     for name, design in _designs(run.params).items():
         if name not in names:
@@ -72,8 +72,8 @@ def candidates(grid: dict) -> list[dict]:
 
 
 def distance(values: dict, drawn: dict) -> float:
-    """Relative change from the drawing, summed over the keys."""
-    return float(sum(abs(v - drawn[k]) / abs(drawn[k]) for k, v in values.items()))
+    """Relative change from the drawing, summed over the keys (absolute where the drawing's is 0)."""
+    return float(sum(abs(v - drawn[k]) / (abs(drawn[k]) or 1.0) for k, v in values.items()))
 
 
 def candidate_row(cfg, name: str, values: dict, report=None) -> dict:

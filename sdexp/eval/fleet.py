@@ -114,13 +114,9 @@ def samples_for(p: FleetParams, n_s: int, dim: int, samples: int) -> int:
 
 
 def body_length(setup) -> float:
-    """The drone's largest dimension (m): the design's bounding lengths (drone.size), or for a
-    drone from a mesh file (no size given) its rest shape's bounding box."""
-    size = list(setup.cfg.drone.size)
-    if size:
-        return float(max(size))
-    rest = setup.drone.fem.rest
-    return float((rest.max(axis=0) - rest.min(axis=0)).max())
+    """The drone's largest dimension (m): ``flights.drone_length``."""
+    from sdexp.eval.flights import drone_length
+    return drone_length(setup.cfg.drone, setup.drone)
 
 
 def deform_target(p: FleetParams, reach_deg: float) -> float:
