@@ -78,7 +78,7 @@ def _fly_round(cfg, data, trained, dyn, round_: int) -> dict:
     from sdexp.control.rollout import LossOfControl
     from sdexp.control.tasks import Task
     from sdexp.eval.controllers import build
-    from sdexp.eval.flights import drone_length
+    from sdexp.sim.drone import drone_length
     from sdexp.model.generate import Rows, episode, widths
     from sdexp.sim.drone import build_drone
     from sdexp.sim.simulator import Simulator

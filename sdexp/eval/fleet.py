@@ -114,8 +114,8 @@ def samples_for(p: FleetParams, n_s: int, dim: int, samples: int) -> int:
 
 
 def body_length(setup) -> float:
-    """The drone's largest dimension (m): ``flights.drone_length``."""
-    from sdexp.eval.flights import drone_length
+    """The drone's largest dimension (m): ``sim.drone.drone_length``."""
+    from sdexp.sim.drone import drone_length
     return drone_length(setup.cfg.drone, setup.drone)
 
 

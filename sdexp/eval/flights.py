@@ -103,16 +103,6 @@ class Setup:
                     paraview=bool(getattr(self.cfg.experiment.params, "paraview", False)))
 
 
-def drone_length(drone_cfg, drone) -> float:
-    """The drone's largest dimension (m): the design's bounding lengths (drone.size), or for a
-    drone from a mesh file (no size given) its rest shape's bounding box."""
-    size = list(drone_cfg.size)
-    if size:
-        return float(max(size))
-    rest = drone.fem.rest
-    return float((rest.max(axis=0) - rest.min(axis=0)).max())
-
-
 def ending(m: dict) -> str:
     """How a flight ended, for a figure title: survived, or the failure's time and short reason."""
     if m["survived"]:

@@ -182,6 +182,16 @@ def build_rotors(points, elems, boundary, anchors, normals, radius, name) -> Rot
                         float(radius))
 
 
+def drone_length(drone_cfg, drone: Drone) -> float:
+    """The drone's largest dimension (m): the design's bounding lengths (drone.size), or for a
+    drone from a mesh file (no size given) its rest shape's bounding box."""
+    size = list(drone_cfg.size)
+    if size:
+        return float(max(size))
+    rest = drone.fem.rest
+    return float((rest.max(axis=0) - rest.min(axis=0)).max())
+
+
 def build_drone(cfg, cache_dir: str, element: str) -> Drone:
     """cfg is the ``drone`` config node (validated); ``element``: ``sim.element``."""
     shape = make_shape(cfg)
