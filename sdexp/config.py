@@ -239,6 +239,11 @@ class ModelConfig:
     # tilt alone and h works in the heading frame, so no net can learn a dependence on which way
     # the drone faces, which its body does not have (sdexp.model.heading; 2D drones: no change)
     frame: str = param("world", choices(("world", "heading"), **UNLESS_DEFAULT))
+    # none: the nets learn the whole velocity change (the paper) | rigid: g and h add it to the
+    # change the rest shape's rigid body would make at level (thrust over mass and the torques
+    # over inertia, weight) and learn the rest (sdexp.model.training.prior_maps; the experiments
+    # read the rest shape, sdexp.sim.rigid.geometry.rigid_prior)
+    prior: str = param("none", choices(("none", "rigid"), **UNLESS_DEFAULT))
     threads: int = field(default=2, metadata=NOT_KEY)   # torch threads: >= 2 trains d, g, h side by side, one thread each
 
 

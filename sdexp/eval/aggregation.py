@@ -30,11 +30,11 @@ log = logging.getLogger(__name__)
 FORMAT = 1   # bump when a round's flights or their transitions change
 
 
-def identify_aggregated(cfg, progress: bool = True):
-    """(dataset, trained nets, LearnedDynamics) after ``cfg.data.aggregation.rounds`` rounds."""
-    from sdexp.model.identification import identify, identify_on
+def aggregate(cfg, data, trained, dyn, progress: bool = True, priors: dict | None = None):
+    """(dataset, trained nets, LearnedDynamics) after ``cfg.data.aggregation.rounds`` rounds from
+    the identified ones (``priors``: the nets', model.prior)."""
+    from sdexp.model.identification import identify_on
 
-    data, trained, dyn = identify(cfg, progress)
     agg = cfg.data.aggregation
     for r in range(1, int(agg.rounds) + 1):
         flown, ends = round_transitions(cfg, data, trained, dyn, r)
@@ -46,7 +46,7 @@ def identify_aggregated(cfg, progress: bool = True):
                         f"({', '.join(sorted(ends))}); the round adds nothing, the next flies the same nets")
             continue
         data = data.joined(flown, f"round {r} ({how})")
-        trained, dyn = identify_on(cfg, data, progress)
+        trained, dyn = identify_on(cfg, data, progress, priors)
     return data, trained, dyn
 
 

@@ -44,8 +44,8 @@ class Setup:
 
     def _identified(self):
         if self._learned is None:
-            from sdexp.eval.aggregation import identify_aggregated
-            self._learned = identify_aggregated(self.cfg, self.progress)
+            from sdexp.eval.learning import learned_model
+            self._learned = learned_model(self.cfg, self.drone, self.progress)
         return self._learned
 
     data = property(lambda self: self._identified()[0])

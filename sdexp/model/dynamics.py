@@ -46,6 +46,7 @@ class _MlpJacobian:
         self.in_mean, self.in_std = g(net.in_mean), g(net.in_std)
         self.out_mean, self.out_std = g(net.out_mean), g(net.out_std)
         self.base = net.base.numpy().copy() if net.has_base else None
+        self.prior = (g(net.prior_W), g(net.prior_b)) if getattr(net, "has_prior", False) else None
 
     def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(y, dy/dz) for one input z (n_in,)."""
@@ -75,6 +76,9 @@ class _MlpJacobian:
         if self.base is not None:
             y = y + z[self.base]
             J[np.arange(len(self.base)), self.base] += 1.0
+        if self.prior is not None:
+            y = y + self.prior[0] @ z + self.prior[1]
+            J = J + self.prior[0]
         return y, J
 
 

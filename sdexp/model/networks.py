@@ -42,9 +42,11 @@ class ResidualBlock(nn.Module):
 
 class ResidualMLP(nn.Module):
     def __init__(self, n_in: int, n_out: int, hidden: int = 128, blocks: int = 4,
-                 base: Sequence[int] | None = None):
+                 base: Sequence[int] | None = None, prior: bool = False):
         """``base``: for every output channel the index of the input channel holding its current
-        value (the residual is added to it); None = predict the output directly."""
+        value (the residual is added to it); None = predict the output directly. ``prior``: a
+        fixed affine map of the input added to it too (``prior_W`` x + ``prior_b``, buffers set by
+        ``set_prior``: the rigid body's response, model.prior), so the net learns what it misses."""
         super().__init__()
         if n_in < 1 or n_out < 1:
             raise ValueError(f"ResidualMLP needs n_in >= 1 and n_out >= 1, got {n_in}, {n_out}")
@@ -64,13 +66,27 @@ class ResidualMLP(nn.Module):
         self.register_buffer("in_std", torch.ones(n_in))
         self.register_buffer("out_mean", torch.zeros(n_out))
         self.register_buffer("out_std", torch.ones(n_out))
+        self.has_prior = bool(prior)
+        if self.has_prior:   # only then: nets saved before priors existed load as they were
+            self.register_buffer("prior_W", torch.zeros(n_out, n_in))
+            self.register_buffer("prior_b", torch.zeros(n_out))
+
+    @torch.no_grad()
+    def set_prior(self, W, b) -> None:
+        self.prior_W[:] = torch.as_tensor(W, dtype=self.prior_W.dtype)
+        self.prior_b[:] = torch.as_tensor(b, dtype=self.prior_b.dtype)
 
     # ---------------------------------------------------------------------------- scaling
     def current(self, x: torch.Tensor) -> torch.Tensor:
-        """The current value of every output channel (zeros without ``base``)."""
+        """What the residual is added to: the current value of every output channel (zeros
+        without ``base``), plus the prior's prediction of its change where there is one."""
         if not self.has_base:
-            return torch.zeros(x.shape[:-1] + (self.n_out,), dtype=x.dtype, device=x.device)
-        return x.index_select(-1, self.base)
+            out = torch.zeros(x.shape[:-1] + (self.n_out,), dtype=x.dtype, device=x.device)
+        else:
+            out = x.index_select(-1, self.base)
+        if self.has_prior:
+            out = out + x @ self.prior_W.to(x.dtype).T + self.prior_b.to(x.dtype)
+        return out
 
     @torch.no_grad()
     def fit_scaling(self, x: torch.Tensor, y: torch.Tensor, eps: float = 1e-6) -> None:
@@ -102,7 +118,7 @@ class ResidualMLP(nn.Module):
     def spec(self) -> dict:
         """Constructor arguments: ``ResidualMLP(**net.spec())`` rebuilds the architecture."""
         return {"n_in": self.n_in, "n_out": self.n_out, "hidden": self.hidden, "blocks": self.n_blocks,
-                "base": self.base.tolist() if self.has_base else None}
+                "base": self.base.tolist() if self.has_base else None, **({"prior": True} if self.has_prior else {})}
 
     @classmethod
     def from_saved(cls, spec: dict, state: dict) -> "ResidualMLP":

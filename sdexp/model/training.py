@@ -222,10 +222,11 @@ def _evaluate(net: ResidualMLP, X: torch.Tensor, T: torch.Tensor, loss, chunk: i
 
 
 def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np.ndarray, base: list[int],
-                  model_cfg, seed: int, name: str = "net", progress: bool = True,
+                  model_cfg, seed: int, name: str = "net", prior=None, progress: bool = True,
                   report: Callable[[int], None] | None = None, threads: int | None = None
                   ) -> tuple[ResidualMLP, pd.DataFrame, float]:
-    """Train one ResidualMLP; returns (net in eval mode, per-epoch history, wall seconds).
+    """Train one ResidualMLP (``prior``: its fixed affine map, ``prior_maps``, or None); returns
+    (net in eval mode, per-epoch history, wall seconds).
     ``report({"net", "epoch", "train", "val"})`` is called after every epoch with its losses
     (progress from a worker process); ``threads`` overrides ``model.threads``."""
     from sdexp.log import Phase
@@ -239,7 +240,9 @@ def train_network(X_tr: np.ndarray, Y_tr: np.ndarray, X_va: np.ndarray, Y_va: np
     X_tr, Y_tr = torch.from_numpy(np.ascontiguousarray(X_tr)), torch.from_numpy(np.ascontiguousarray(Y_tr))
     X_va, Y_va = torch.from_numpy(np.ascontiguousarray(X_va)), torch.from_numpy(np.ascontiguousarray(Y_va))
     hidden = 0 if name in model_cfg.linear else int(model_cfg.hidden)   # 0: a linear net
-    net = ResidualMLP(X_tr.shape[1], Y_tr.shape[1], hidden, int(model_cfg.blocks), base)
+    net = ResidualMLP(X_tr.shape[1], Y_tr.shape[1], hidden, int(model_cfg.blocks), base, prior=prior is not None)
+    if prior is not None:
+        net.set_prior(*prior)
     net.fit_scaling(X_tr, Y_tr)
     with torch.no_grad():  # standardised targets once, not per batch
         T_tr, T_va = net.target_raw(X_tr, Y_tr), net.target_raw(X_va, Y_va)
@@ -302,8 +305,9 @@ def _epoch(net, opt, loss, X_tr, T_tr, bs: int, gen) -> float:
 
 # ------------------------------------------------------------------------------ cache
 
-def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Sequence[NetSpec]) -> str:
-    """``model_cfg``: a sdexp.config.ModelConfig."""
+def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Sequence[NetSpec],
+               priors: dict | None = None) -> str:
+    """``model_cfg``: a sdexp.config.ModelConfig; ``priors``: train_models'."""
     model = {**config_key(model_cfg), "linear": sorted(model_cfg.linear)}   # which nets, in any order
     keys = {k for s in specs for k in (*s.inputs, s.target)}
     if int(model_cfg.horizon) > 1 or int(model_cfg.command_delay) > 0:
@@ -315,6 +319,8 @@ def models_key(data, model_cfg, seed: int, validation_fraction: float, specs: Se
         "validation_fraction": float(validation_fraction),
         "specs": [asdict(s) for s in specs],
     }
+    if priors:   # keyed only with one: the nets without are the ones cached before priors existed
+        payload["priors"] = {k: [np.asarray(a, dtype=float).round(12).tolist() for a in v] for k, v in sorted(priors.items())}
     return key_of("nets", FORMAT_VERSION, payload)
 
 
@@ -347,29 +353,45 @@ def _load(path: Path, key: str, specs, quiet: bool = False) -> TrainedNets | Non
 
 
 def train_models(data, model_cfg, seed: int, cache_dir: str | Path | None, validation_fraction: float,
-                 specs: Sequence[NetSpec] = DECOMPOSED, progress: bool = True) -> TrainedNets:
+                 specs: Sequence[NetSpec] = DECOMPOSED, progress: bool = True, priors: dict | None = None) -> TrainedNets:
     """Train (or load from the cache) one network per spec on the episode split of ``data``.
 
     A spec whose target has no channels (a drone without peripheral sensors has an empty s, so
-    no d) is skipped and listed in ``skipped``: its block of f is empty."""
+    no d) is skipped and listed in ``skipped``: its block of f is empty. ``priors`` (model.prior):
+    target -> (per-newton acceleration of the command (n_out, m), constant acceleration (n_out,)),
+    the rigid body's response at level; a spec with one adds it over ``alpha`` to the current
+    velocity and learns the rest (``prior_maps``)."""
     specs = tuple(specs)
-    key = models_key(data, model_cfg, seed, validation_fraction, specs)
+    key = models_key(data, model_cfg, seed, validation_fraction, specs, priors)
     path = Path(cache_dir).expanduser() / f"{key}.pt" if cache_dir is not None else None
     if path is not None and path.exists():
         loaded = _load(path, key, specs)
         if loaded is not None:
             return loaded
     if path is None:
-        return _train_models(data, model_cfg, seed, None, validation_fraction, specs, key, progress)
+        return _train_models(data, model_cfg, seed, None, validation_fraction, specs, key, progress, priors)
     with build_lock(path):   # concurrent jobs that need these nets: one trains, the others wait
         if path.exists():
             loaded = _load(path, key, specs, quiet=True)
             if loaded is not None:
                 return loaded
-        return _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress)
+        return _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress, priors)
 
 
-def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress) -> TrainedNets:
+def prior_maps(spec: NetSpec, priors: dict | None, n_in: int, m: int, alpha: float):
+    """The affine map (W (n_out, n_in), b (n_out,)) of ``spec``'s inputs that ``priors`` give its
+    velocity change over ``alpha`` (the command is the inputs' last ``m`` columns), or None."""
+    if not priors or spec.target not in priors:
+        return None
+    per_newton, constant = (np.asarray(a, dtype=float) for a in priors[spec.target])
+    if spec.inputs[-1] != "u":
+        raise ValueError(f"network {spec.name!r}: a prior needs the command u as its last input")
+    W = np.zeros((per_newton.shape[0], n_in))
+    W[:, n_in - m:] = alpha * per_newton
+    return W, alpha * constant
+
+
+def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress, priors=None) -> TrainedNets:
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
     horizon, delay, frame = int(model_cfg.horizon), int(model_cfg.command_delay), str(model_cfg.frame)
@@ -384,7 +406,9 @@ def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, 
         if not (ok_tr.all() and ok_va.all()):
             log.warning(f"sdexp: network {spec.name}: dropping {(~ok_tr).sum() + (~ok_va).sum()} non-finite transitions")
             X_tr, Y_tr, X_va, Y_va = X_tr[ok_tr], Y_tr[ok_tr], X_va[ok_va], Y_va[ok_va]
-        jobs.append((X_tr, Y_tr, X_va, Y_va, base, model_cfg, int(seed) * 1000 + i, spec.name))
+        alpha = int(model_cfg.horizon) * float(data.meta["control_dt"])
+        prior = prior_maps(spec, priors, X_tr.shape[1], int(data.meta["m"]), alpha)
+        jobs.append((X_tr, Y_tr, X_va, Y_va, base, model_cfg, int(seed) * 1000 + i, spec.name, prior))
     t0 = time.perf_counter()
     if int(model_cfg.threads) >= 2 and len(jobs) >= 2:
         results = _train_parallel(jobs, int(model_cfg.epochs), progress)
@@ -393,7 +417,7 @@ def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, 
     wall = time.perf_counter() - t0
     nets, history, seconds = {}, {}, {}
     for job, (net, hist, sec) in zip(jobs, results):
-        name = job[-1]
+        name = job[7]
         nets[name], history[name], seconds[name] = net, hist, sec
         if progress:
             kept = hist[hist["selected"]].iloc[0]
@@ -422,7 +446,7 @@ def _train_parallel(jobs, epochs: int, progress: bool):
     cores at 2/3 speed each and degrade gracefully under load."""
     from sdexp.log import Phase
 
-    names = ", ".join(job[-1] for job in jobs)
+    names = ", ".join(job[7] for job in jobs)
     with Phase(f"training nets {names} (one process each)", total=epochs * len(jobs), unit="epochs",
                enabled=progress) as bar:
         latest = {}

@@ -219,18 +219,20 @@ def test_ablation_decomposition_runs_shrunk(tmp_path, cache_dir):
     assert metrics["undecomposed_channels"] == 2 + 1 + 8   # rod: p (2), e (1), 8 peripheral angles
 
 
-@pytest.mark.parametrize("base,hidden", [(True, 24), (False, 24), (True, 0)])
-def test_hand_reverse_pass_equals_torch_autograd(base, hidden):
+@pytest.mark.parametrize("base,hidden,prior", [(True, 24, False), (False, 24, False), (True, 0, False), (True, 24, True)])
+def test_hand_reverse_pass_equals_torch_autograd(base, hidden, prior):
     """The relinearisation's Jacobian pass (by hand, for speed) is exact reverse-mode
     differentiation: it equals torch.autograd on the same float64 network (hidden = 0: a
-    linear one, model.linear)."""
+    linear one, model.linear; prior: with a fixed affine map added, model.prior)."""
     from sdexp.model.dynamics import _MlpJacobian
 
     torch.manual_seed(3)
-    net = ResidualMLP(11, 4, hidden=hidden, blocks=4, base=[2, 3, 4, 5] if base else None).double()
+    net = ResidualMLP(11, 4, hidden=hidden, blocks=4, base=[2, 3, 4, 5] if base else None, prior=prior).double()
     with torch.no_grad():
         net.in_mean.uniform_(-0.5, 0.5); net.in_std.uniform_(0.5, 2.0)
         net.out_mean.uniform_(-0.1, 0.1); net.out_std.uniform_(0.05, 0.3)
+    if prior:
+        net.set_prior(np.random.default_rng(5).normal(size=(4, 11)), [0.1, -0.2, 0.3, 9.81])
     jac = _MlpJacobian(net)
     for z in np.random.default_rng(4).normal(size=(5, 11)):
         y, J = jac(z)

@@ -283,3 +283,30 @@ def test_linear_nets_fit_a_linear_law_and_key_only_when_asked():
     assert base == training.models_key(data, model_cfg(linear=[]), 0, 0.2, DECOMPOSED)
     assert training.models_key(data, model_cfg(linear=["h", "d"]), 0, 0.2, DECOMPOSED) == \
         training.models_key(data, model_cfg(linear=["d", "h"]), 0, 0.2, DECOMPOSED) != base
+
+
+def test_a_prior_is_added_to_the_current_velocity_and_the_net_learns_the_rest():
+    """model.prior: the prior's change (per newton of the command, the inputs' last m columns,
+    and a constant, over alpha) is part of what the residual is added to; the nets of g and h
+    get it, d none; saved and loaded with it; keyed only with one."""
+    data = synthetic_dataset(n=2000)
+    m, alpha = 4, 0.01
+    per_newton = np.arange(12.0).reshape(3, m)
+    priors = {"p_dot_next": (per_newton, np.array([0.0, -9.81, 0.0])), "e_dot_next": (np.ones((3, m)), np.zeros(3))}
+    res = train_models(data, model_cfg(epochs=1), seed=0, cache_dir=None, validation_fraction=0.2,
+                       progress=False, priors=priors)
+    h, d = res.nets["h"], res.nets["d"]
+    assert h.has_prior and res.nets["g"].has_prior and not d.has_prior
+    np.testing.assert_allclose(h.prior_W[:, -m:].numpy(), alpha * per_newton, rtol=1e-6)
+    assert not h.prior_W[:, :-m].any() and np.isclose(float(h.prior_b[1]), -9.81 * alpha)
+    X, Y, base = design(data, DECOMPOSED[2])
+    x = torch.from_numpy(X[:5])
+    with torch.no_grad():
+        current = x[:, base] + x[:, -m:] @ torch.from_numpy(alpha * per_newton.T).float() + h.prior_b
+        np.testing.assert_allclose(h.current(x).numpy(), current.numpy(), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(h(x).numpy(), (current + h.out_mean + h.out_std * h.raw_output(x)).numpy(),
+                                   rtol=1e-5, atol=1e-6)
+    again = ResidualMLP.from_saved(h.spec(), h.state_dict())
+    assert again.has_prior and torch.equal(again.prior_W, h.prior_W)
+    keys = {training.models_key(data, model_cfg(), 0, 0.2, DECOMPOSED, p) for p in (None, priors)}
+    assert len(keys) == 2 and training.models_key(data, model_cfg(), 0, 0.2, DECOMPOSED) in keys

@@ -50,6 +50,23 @@ def rest_hover_thrust(drone, gravity: float) -> np.ndarray:
     return hover_thrust(mass, pos, dirs, gravity)
 
 
+def rigid_prior(drone, gravity: float) -> dict:
+    """The rest shape as a rigid body at level, as the learned model's prior (model.prior: rigid,
+    sdexp.model.training.prior_maps): target -> (acceleration per newton of each rotor, constant
+    acceleration): p_dot's the thrust directions over the mass and the weight's -g along y, e_dot's
+    the torques about the centre of mass over the inertia and nothing (at level, whatever the
+    yaw, the Euler rates are the body's angular velocity: R = Ry Rz Rx, sdexp.sensing.rotations).
+    Plain arrays: the learning side never reads the drone itself."""
+    fem = drone.fem
+    dim = fem.dim
+    mass, _, inertia, pos, dirs = rigid_body(fem.rest, fem.mass, drone.rotors, np.eye(dim))
+    W = wrench_matrix(pos, dirs)
+    weight = np.zeros(dim)
+    weight[1] = -float(gravity)
+    turn = np.linalg.solve(inertia, W[dim:])
+    return {"p_dot_next": (W[:dim] / mass, weight), "e_dot_next": (turn, np.zeros(turn.shape[0]))}
+
+
 def deformation_patterns(drone) -> np.ndarray:
     """Orthonormal basis (m, k) of the rotor thrust patterns that put no net lift and no roll or
     pitch torque on the undeformed drone (3D: force y, torques x and z; 2D: force y, torque):
