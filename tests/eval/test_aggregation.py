@@ -46,3 +46,19 @@ def test_an_aggregation_out_of_range_names_the_key_and_its_range(cache_dir, over
         validate(make_cfg(*SHRUNK, f"cache_dir={cache_dir}", override))
     for w in words:
         assert w in str(err.value), str(err.value)
+
+
+def test_a_round_whose_flights_all_fail_at_once_is_logged_and_the_rounds_go_on(cache_dir, monkeypatch, caplog):
+    from collections import Counter
+
+    from sdexp.eval import aggregation
+    base = Setup(_cfg(cache_dir), progress=False)
+    empty = {k: v[:0] for k, v in base.data.arrays.items()}
+    monkeypatch.setattr(aggregation, "round_transitions",
+                        lambda *a, **k: (dict(empty), Counter({"inverted_element": 2})))
+    cfg = _cfg(cache_dir, "data.aggregation.rounds=2")
+    with caplog.at_level("WARNING"):
+        data, trained, _ = aggregation.aggregate(cfg, base.data, base.trained, base.dyn, progress=False)
+    assert len(data) == len(base.data) and trained.key == base.trained.key
+    assert sum("every flight failed before its first transition (inverted_element)" in r.message
+               for r in caplog.records) == 2
