@@ -136,21 +136,30 @@ def one_thread_children():
 
 @contextlib.contextmanager
 def _deaf_to_ctrl_c():
-    """Processes started within ignore SIGINT from their start on (an ignored signal stays ignored
-    across exec, and Python then installs no KeyboardInterrupt): Ctrl-C reaches a terminal's whole
-    process group, and the parent ends its workers (run_spawned); a worker's own interrupt would
-    print a traceback, or fail only its task and take the next. This process ignores it too for
-    the moment the children take to start."""
+    """Processes started within never see SIGINT: they start with it blocked (a blocked signal
+    stays blocked across fork and exec, and stays pending there, never delivered). Ctrl-C reaches
+    a terminal's whole process group, and the parent ends its workers (run_spawned); a worker's
+    own interrupt would print a traceback, or fail only its task and take the next. A Ctrl-C in
+    that moment is kept and raised when the children have started: ignoring it instead (as
+    before) lost it, and under load, where starting two workers takes seconds, the run went on
+    (the Ctrl-C test timed out at 30 s)."""
     import signal
     import threading
-    if threading.current_thread() is not threading.main_thread():   # only there can handlers be set
+    if threading.current_thread() is not threading.main_thread():   # the main thread's mask is what children inherit
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the mask is per thread: another thread of this process may still take the signal, so for
+    # the moment it is only noted (the disposition is the process's), and raised after
+    noted = []
+    handler = signal.signal(signal.SIGINT, lambda *_: noted.append(True))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)   # one pending here is delivered now: noted
+        signal.signal(signal.SIGINT, handler)
+    if noted:
+        raise KeyboardInterrupt
 
 
 def end_processes(processes, wait: float = 2.0) -> None:

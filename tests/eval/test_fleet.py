@@ -131,6 +131,7 @@ def test_the_velocity_task_ramps_and_the_reach_task_is_diagonal(cache_dir):
 
     class FakeSetup:
         layout = FakeLayout()
+        drone = None   # the reach trip reads the drone's size from its config
 
         def __init__(self):
             self.cfg = cfg
