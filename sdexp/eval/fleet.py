@@ -574,7 +574,8 @@ def run(run: Run) -> dict:
         out[f"{drone}_{task}_{ctl}_survived"] = int(grp["survived"].sum())
         out[f"{drone}_{task}_{ctl}_within"] = int((grp["outcome"] == "within").sum())
         out[f"{drone}_{task}_{ctl}_beyond"] = int((grp["outcome"] == BEYOND).sum())
-        out[f"{drone}_{task}_{ctl}_{grp['primary'].iloc[0]}_median"] = float(grp["primary_value"].median())
+        if grp["primary_value"].notna().any():   # none where the task is beyond the body
+            out[f"{drone}_{task}_{ctl}_{grp['primary'].iloc[0]}_median"] = float(grp["primary_value"].median())
     return out
 
 
