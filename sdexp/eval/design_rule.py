@@ -101,7 +101,8 @@ def run(run: Run) -> dict:
     tasks, drawn = [], {}
     for name, design in _designs(p).items():
         drone = conf.drone(name)
-        drawn[name] = {k: float(design.get("drawn", {}).get(k, _value(drone, k, name))) for k in design["grid"]}
+        drawn[name] = {k: float(design.get("drawn", {}).get(k, _value(drone, k, f"experiment.params.designs.{name}")))
+                       for k in design["grid"]}
         tasks += [(cfg, name, values) for values in candidates(design["grid"])]
     with Phase("design rule candidates", total=len(tasks), unit="candidates") as bar:
         rows = run_spawned(candidate_row, tasks, max(1, min(int(p.workers), len(tasks))),
@@ -114,7 +115,7 @@ def run(run: Run) -> dict:
     for name in drawn:
         mine = table[table["drone"] == name]
         ok = mine[mine["passes"]]
-        committed = {k: _value(conf.drone(name), k, name) for k in drawn[name]}
+        committed = {k: _value(conf.drone(name), k, f"experiment.params.designs.{name}") for k in drawn[name]}
         if ok.empty:
             log.warning(f"sdexp: design rule: no candidate of {name} hovers statically with margin; its "
                         f"committed design stays ({_say(committed)})")

@@ -139,10 +139,19 @@ def deform_schedule(n_s: int, p: FleetParams, target_deg: float) -> tuple[list, 
     return times, [list(x) for x in targets], t
 
 
+def beyond_body(p: FleetParams, reach_deg: float) -> str:
+    """Why the deform task is beyond a body whose bend reach is ``reach_deg`` (its target under the
+    task's tolerance), or "" when it is not."""
+    target, tol = deform_target(p, reach_deg), tolerance("deform", p, 0.0)
+    if target >= tol:
+        return ""
+    return (f"{BEYOND}: its rotors bend it at most {reach_deg:.2g} deg while it stays level "
+            f"(statics.deform_reach), the target {target:.2g} deg is under the {tol:g} deg tolerance")
+
+
 def tasks_for(setup, p: FleetParams, reach_deg: float) -> dict:
-    """name -> (Task, time from which its errors are measured), or for a deform task beyond the
-    body (its target, from the body's bend reach ``reach_deg``, under the tolerance) name -> (None,
-    the reason)."""
+    """name -> (Task, time from which its errors are measured); the deform task (its target from
+    the body's bend reach ``reach_deg``) only where it is not beyond the body (``beyond_body``)."""
     dim, n_s = setup.layout.dim, setup.layout.n_s
     start = np.zeros(dim)
     out = {}
@@ -157,13 +166,8 @@ def tasks_for(setup, p: FleetParams, reach_deg: float) -> dict:
             v[0] = float(p.speed)
             out[name] = (setup.task(start, start, float(p.ramp_seconds) + float(p.velocity_seconds), velocity=v,
                                     ramp=float(p.ramp_seconds)), float(p.ramp_seconds))
-        else:
-            target, tol = deform_target(p, reach_deg), tolerance(name, p, 0.0)
-            if target < tol:
-                out[name] = (None, f"{BEYOND}: its rotors bend it at most {reach_deg:.2g} deg while it stays level "
-                                   f"(statics.deform_reach), the target {target:.2g} deg is under the {tol:g} deg tolerance")
-                continue
-            times, targets, seconds = deform_schedule(n_s, p, target)
+        elif not beyond_body(p, reach_deg):
+            times, targets, seconds = deform_schedule(n_s, p, deform_target(p, reach_deg))
             out[name] = (setup.task(start, start, seconds, bend_times=times, bend_targets=targets),
                          float(p.settle_seconds))
     return out
@@ -455,14 +459,9 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
         result["seconds"]["physics"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         trip = float(p.reach_lengths) * body_length(setup)
-        for task_name, (task, since) in tasks_for(setup, p, result["physics"]["deform_reach_deg"]).items():
+        reach = result["physics"]["deform_reach_deg"]
+        for task_name, (task, since) in tasks_for(setup, p, reach).items():
             for ctl_name in p.controllers:
-                if task is None:   # beyond the body: since holds the reason
-                    result["rows"].append({
-                        "drone": name, "seed": int(seed), "task": task_name, "controller": ctl_name, "survived": False,
-                        "survival_time": np.nan, "failure": since, "seconds": 0.0, "final_error": np.nan,
-                        "primary": PRIMARY[task_name], "primary_value": np.nan, "tolerance": tolerance(task_name, p, trip)})
-                    continue
                 phase = starting(f"{task_name} under {ctl_name}")
                 sim = setup.simulator()
                 flight, m = setup.fly(sim, setup.controller(ctl_name, sim), task, f"{name} {task_name}")
@@ -475,8 +474,12 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
                     "seconds": task.seconds, "final_error": m["final_error"], **errors,
                     "max_tilt_deg": m["max_tilt_deg"], "thrust_usage": m["thrust_usage"],
                     "primary": primary, "primary_value": value, "tolerance": tolerance(task_name, p, trip),
-                    **({"target_deg": deform_target(p, result["physics"]["deform_reach_deg"])}
-                       if task_name == "deform" else {})})
+                    **({"target_deg": deform_target(p, reach)} if task_name == "deform" else {})})
+        beyond = beyond_body(p, reach) if "deform" in p.tasks else ""
+        result["rows"] += [{"drone": name, "seed": int(seed), "task": "deform", "controller": ctl_name, "survived": False,
+                            "survival_time": np.nan, "failure": beyond, "seconds": 0.0, "final_error": np.nan,
+                            "primary": PRIMARY["deform"], "primary_value": np.nan, "tolerance": tolerance("deform", p, trip)}
+                           for ctl_name in p.controllers if beyond]   # not flown: a row each, with the reason
         result["seconds"]["flights"] = time.perf_counter() - t1
     except Exception as err:   # the drone's failure is a finding, recorded; the fleet goes on
         result["error"] = f"{phase}: {type(err).__name__}: {err}".splitlines()[0][:500]

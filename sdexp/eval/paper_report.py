@@ -397,7 +397,7 @@ def _privileged(results: Path, jobs) -> tuple[object, set]:
     return pd.read_csv(folder / "fleet.csv"), changed
 
 
-def _side(privileged, changed: set, drone: str, task: str, seeds: int, physics_rule: str) -> str:
+def _side(privileged, changed: set, drone: str, task: str, physics_rule: str) -> str:
     """Which side holds a pair ours does not fly: physics where the body has no static hover (the
     design rule's statics); learning where the privileged reduced-model LQR flies it in every seed
     of its run; open where neither says."""
@@ -469,7 +469,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     designs (its six 3D designs and the rod: the designs it trains controllers for) apart from
     sdexp's others; each pair of theirs that does not fly is said why."""
     import pandas as pd
-    from sdexp.eval.fleet import PAPER_DESIGNS
+    from sdexp.eval.fleet import BEYOND, PAPER_DESIGNS
 
     claim = "ours controls the paper's designs (six 3D and the rod): hovering, target reaching, velocity tracking, active deformation"
     rs = runs(results, "fleet")   # read strictly: its CSVs whole (sdexp.eval.committed)
@@ -527,7 +527,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
         lines += ["Why each pair of the paper's designs that does not fly misses (ours' flights over the seeds), and "
                   "which side holds it: physics (no static hover, docs/designs.md), learning (the privileged "
                   "reduced-model LQR of `results/fleet_reduced_lqr/` flies it in every seed), or open:\n"]
-        lines += [f"- {d} {t}: {_why(table, d, t, rules.get(d, ''), _side(privileged, changed, d, t, seeds, rules.get(d, '')))}"
+        lines += [f"- {d} {t}: {_why(table, d, t, rules.get(d, ''), _side(privileged, changed, d, t, rules.get(d, '')))}"
                   for d, t in misses] + [""]
     job_time = ""
     if {"learning_seconds", "flights_seconds"} <= set(jobs.columns):
@@ -544,7 +544,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     n_every, n_median = sum(every[p] for p in paper), sum(median[p] for p in paper)
     per_task = ", ".join(f"{t} {sum(every[(d, t)] for d, tt in paper if tt == t)}" for t in tasks)
     n_beyond = sum(_outcomes(table[(table["drone"] == d) & (table["task"] == t) & (table["controller"] == "ours")])[0]
-                   == "beyond the body" for d, t in paper)
+                   == BEYOND for d, t in paper)
     designs = len({d for d, _ in paper})
     verdict = REPRODUCED if n_every == len(paper) else PARTLY if n_every > len(paper) / 2 else NOT
     return lines, [(claim, f"{designs} designs x four tasks ({len(paper)} pairs)",

@@ -41,7 +41,7 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import pandas as pd
@@ -391,6 +391,19 @@ def prior_maps(spec: NetSpec, priors: dict | None, n_in: int, m: int, alpha: flo
     return W, alpha * constant
 
 
+class _Job(NamedTuple):
+    """One network's training: ``train_network``'s positional arguments."""
+    X_tr: np.ndarray
+    Y_tr: np.ndarray
+    X_va: np.ndarray
+    Y_va: np.ndarray
+    base: list
+    model_cfg: object
+    seed: int
+    name: str
+    prior: object
+
+
 def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, progress, priors=None) -> TrainedNets:
     train_idx, val_idx = split_indices(data, validation_fraction, seed, int(model_cfg.batch_size))
     jobs, skipped = [], []
@@ -408,7 +421,7 @@ def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, 
             X_tr, Y_tr, X_va, Y_va = X_tr[ok_tr], Y_tr[ok_tr], X_va[ok_va], Y_va[ok_va]
         alpha = int(model_cfg.horizon) * float(data.meta["control_dt"])
         prior = prior_maps(spec, priors, X_tr.shape[1], int(data.meta["m"]), alpha)
-        jobs.append((X_tr, Y_tr, X_va, Y_va, base, model_cfg, int(seed) * 1000 + i, spec.name, prior))
+        jobs.append(_Job(X_tr, Y_tr, X_va, Y_va, base, model_cfg, int(seed) * 1000 + i, spec.name, prior))
     t0 = time.perf_counter()
     if int(model_cfg.threads) >= 2 and len(jobs) >= 2:
         results = _train_parallel(jobs, int(model_cfg.epochs), progress)
@@ -417,7 +430,7 @@ def _train_models(data, model_cfg, seed, path, validation_fraction, specs, key, 
     wall = time.perf_counter() - t0
     nets, history, seconds = {}, {}, {}
     for job, (net, hist, sec) in zip(jobs, results):
-        name = job[7]
+        name = job.name
         nets[name], history[name], seconds[name] = net, hist, sec
         if progress:
             kept = hist[hist["selected"]].iloc[0]
@@ -446,7 +459,7 @@ def _train_parallel(jobs, epochs: int, progress: bool):
     cores at 2/3 speed each and degrade gracefully under load."""
     from sdexp.log import Phase
 
-    names = ", ".join(job[7] for job in jobs)
+    names = ", ".join(job.name for job in jobs)
     with Phase(f"training nets {names} (one process each)", total=epochs * len(jobs), unit="epochs",
                enabled=progress) as bar:
         latest = {}
