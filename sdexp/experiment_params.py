@@ -351,6 +351,29 @@ class DesignRuleParams(Params):
                             f"among {', '.join(self.designs)}")
 
 
+# ------------------------------------------------------------------ the researcher's toolbox
+
+RL_TASKS = ("hover", "reach")   # the environments' presets (sdexp.envs.tasks): the paper's SOTA task and a hover
+RL_ALGORITHMS = ("sac", "ppo")
+
+
+@dataclass
+class RlBaselineParams(Params):
+    """sdexp.envs.rl_baseline: a Stable-Baselines3 agent beside ours at equal data."""
+    tasks: List[str] = param(["hover", "reach"], choices(RL_TASKS))
+    algorithm: str = param("sac", choices(RL_ALGORITHMS))   # SAC: the sample-efficient one, for equal data
+    # environment transitions at which the agent is scored: checkpoints of one training run each
+    budgets: List[int] = param([60000, 600000], positive("transitions"))
+    seeds: List[int] = _param([0, 1, 2], lambda v: v >= 0, ">= 0")   # each: ours' data and nets, the agent's training
+    episodes: int = param(3, positive("episodes"))   # scored per checkpoint (and for ours), on sim.model
+    workers: int = param(2, at_least(1))   # (task, seed) trainings side by side, one core each
+
+    def check(self) -> None:
+        for key, value in (("tasks", self.tasks), ("budgets", self.budgets), ("seeds", self.seeds)):
+            if not value or len(set(value)) != len(value):
+                raise UserError(f"{PREFIX}{key} = {list(value)!r}: allowed a non-empty list of distinct values")
+
+
 # experiment name (its conf/experiment/<name>.yaml) -> the schema of its params
 PARAMS: dict[str, type[Params]] = {
     "ablation_decomposition": AblationDecompositionParams, "ablation_fixed_point": AblationFixedPointParams,
@@ -359,7 +382,7 @@ PARAMS: dict[str, type[Params]] = {
     "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "fleet": FleetParams, "gallery": GalleryParams,
     "hover_deform": HoverDeformParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
     "obstacle": ObstacleParams, "record": RecordParams, "reduced_gates": ReducedGatesParams,
-    "report": ReportParams, "sota": SotaParams,
+    "report": ReportParams, "rl_baseline": RlBaselineParams, "sota": SotaParams,
     "validate_fem": ValidateFemParams,
 }
 GROUP = "experiment_params"

@@ -25,8 +25,10 @@ def test_one_place_picks_the_matplotlib_backend():
 
 
 def test_an_experiment_is_found_by_its_name():
-    """conf/experiment/<name>.yaml runs sdexp/eval/<name>.py's run, for every experiment."""
+    """conf/experiment/<name>.yaml runs sdexp/eval/<name>.py's run, for every experiment; one that
+    trains in the Gymnasium environments sits beside them, sdexp/envs/<name>.py (the layers put
+    sdexp.envs above sdexp.eval)."""
     from sdexp import conf
     wrong = {n: conf.read("experiment", n).experiment._target_ for n in conf.names("experiment")
-             if conf.read("experiment", n).experiment._target_ != f"sdexp.eval.{n}.run"}
+             if conf.read("experiment", n).experiment._target_ not in (f"sdexp.eval.{n}.run", f"sdexp.envs.{n}.run")}
     assert not wrong, wrong
