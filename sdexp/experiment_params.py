@@ -351,6 +351,35 @@ class DesignRuleParams(Params):
                             f"among {', '.join(self.designs)}")
 
 
+# kernel choice -> the environment of its fleet's process: OpenBLAS's kernel (numpy's linear algebra)
+# and MKL's code path (torch's); "machine": what this CPU picks
+KERNELS = {"machine": {}, "haswell": {"OPENBLAS_CORETYPE": "Haswell"}, "zen": {"OPENBLAS_CORETYPE": "Zen"},
+           "sandybridge": {"OPENBLAS_CORETYPE": "Sandybridge"}, "prescott": {"OPENBLAS_CORETYPE": "Prescott"},
+           "skylakex": {"OPENBLAS_CORETYPE": "SkylakeX"}, "mkl_avx2": {"MKL_CBWR": "AVX2"},
+           "mkl_compatible": {"MKL_CBWR": "COMPATIBLE"},
+           "haswell_mkl_avx2": {"OPENBLAS_CORETYPE": "Haswell", "MKL_CBWR": "AVX2"}}
+
+@dataclass
+class KernelSpreadParams(Params):
+    """sdexp.eval.kernel_spread: one fleet per BLAS kernel choice, each learning afresh."""
+    # the fleet each kernel choice flies: sdexp experiment=fleet <these>
+    overrides: List[str] = _param(["experiment.params.drones=[flower,tripod]", "experiment.params.seeds=[0]",
+                                   "experiment.params.controllers=[ours]"])
+    # which kernel choices (sdexp.eval.kernel_spread.KERNELS: the environment of each fleet's process)
+    kernels: List[str] = param(["machine", "haswell", "sandybridge", "prescott", "mkl_avx2", "haswell_mkl_avx2"],
+                               choices(KERNELS))
+    # cache kinds every fleet reads from the run's cache instead of making them again: made by the
+    # mesher and the C simulator, not by the BLAS libraries (the data, nets and reduced models are not)
+    shared: List[str] = param(["mesh2d", "mesh3d", "bodyphysics", "statichover", "shapehover", "kernels"],
+                              choices(("mesh2d", "mesh3d", "bodyphysics", "statichover", "shapehover", "kernels",
+                                       "massscale")))
+    workers: int = param(2, at_least(1))   # fleets side by side, one core each
+
+    def check(self) -> None:
+        if not self.kernels or len(set(self.kernels)) != len(self.kernels):
+            raise UserError(f"{PREFIX}kernels = {list(self.kernels)!r}: allowed a non-empty list of distinct names")
+
+
 # ------------------------------------------------------------------ the researcher's toolbox
 
 RL_TASKS = ("hover", "reach")   # the environments' presets (sdexp.envs.tasks): the paper's SOTA task and a hover
@@ -380,7 +409,7 @@ PARAMS: dict[str, type[Params]] = {
     "bench_control": BenchControlParams, "bench_sim": BenchSimParams, "bench_sweep": BenchSweepParams,
     "design_rule": DesignRuleParams,
     "discrepancy": DiscrepancyParams, "discrepancy_bench": DiscrepancyBenchParams, "fleet": FleetParams, "gallery": GalleryParams,
-    "hover_deform": HoverDeformParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
+    "hover_deform": HoverDeformParams, "kernel_spread": KernelSpreadParams, "model_test": ModelTestParams, "nsweep": NsweepParams,
     "obstacle": ObstacleParams, "record": RecordParams, "reduced_gates": ReducedGatesParams,
     "report": ReportParams, "rl_baseline": RlBaselineParams, "sota": SotaParams,
     "validate_fem": ValidateFemParams,
