@@ -51,6 +51,103 @@ class Failure:
     detail: str = ""
 
 
+class _Full:
+    """sim.model = full, as the simulator sees it: the FEM body (sdexp.sim.physics.integrator.Body),
+    read and placed through its vertices' x and v alone, so that an earlier commit's Body steps here
+    too (the bitwise test, sdexp.eval.bench_kernels)."""
+
+    reduced = None
+
+    def __init__(self, sim: "Simulator"):
+        self.sim = sim
+        self.imus = sim.drone.imus
+
+    def stable_substep(self, safety: float, inertia) -> float:
+        return stable_substep(self.sim.fem, safety, mass=inertia)
+
+    def body(self):
+        sim, c = self.sim, self.sim.cfg
+        boxes = list(c.obstacles)
+        return Body(sim.fem, sim.threads, sim.drone.rotors, c.ground,
+                    [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
+                    c.friction, precision=c.precision, added_mass=sim.scaling.added)
+
+    def nodes(self, body) -> tuple[np.ndarray, np.ndarray]:
+        """What the IMUs read: every vertex (``imus.idx`` indexes the mesh)."""
+        return body.x, body.v
+
+    def translate(self, body, offset: np.ndarray) -> None:
+        body.x += offset
+
+    def place(self, body, x, v, rotation) -> None:
+        from sdexp.sensing.rotations import quat_from_matrix
+        body.x[:] = x
+        body.v[:] = v
+        if rotation is not None and self.sim.drone.dim == 3:
+            body.set_rotation(quat_from_matrix(np.asarray(rotation)))
+
+    def save(self, body):
+        return body.x.copy(), body.v.copy()
+
+    def restore(self, body, saved) -> None:
+        body.x[:], body.v[:] = saved
+
+    def size(self, body) -> float:
+        return extent(body.x)
+
+    def left_range(self, body) -> str | None:
+        return None   # the full model has no fitted range
+
+
+class _Reduced:
+    """sim.model = reduced, as the simulator sees it: a ReducedBody (floating frame and modal
+    coordinates, sdexp.sim.reduced.body) of the drone's reduced model."""
+
+    def __init__(self, sim: "Simulator", reduced):
+        self.sim, self.reduced = sim, reduced
+        self.imus = replace(sim.drone.imus, idx=reduced.imu_idx)   # the patches' nodes, in the model's own order
+
+    def stable_substep(self, safety: float, inertia) -> float:
+        from sdexp.sim.reduced.body import stable_substep as reduced_substep
+        return reduced_substep(self.reduced, safety)
+
+    def body(self):
+        from sdexp.sim.reduced.body import ReducedBody
+        body = ReducedBody(self.reduced, self.sim.cfg.precision)
+        body.pushed = bool(self.sim._push)
+        return body
+
+    def nodes(self, body) -> tuple[np.ndarray, np.ndarray]:
+        """What the IMUs read: the patches' nodes only, not the whole mesh."""
+        x, v, _ = body.sensor_nodes()
+        return x, v
+
+    def translate(self, body, offset: np.ndarray) -> None:
+        body.translate(offset)
+
+    def place(self, body, x, v, rotation) -> None:
+        body.set_full(x, v)   # the frame is the best fit of x: no rotation to warm-start
+
+    def save(self, body):
+        return body.copy_state()
+
+    def restore(self, body, saved) -> None:
+        body.restore(saved)
+
+    def size(self, body) -> float:
+        # bounded by the range check (its mesh is not rebuilt a step): only finiteness is asked
+        return 0.0 if np.all(np.isfinite(body.z)) else np.nan
+
+    def left_range(self, body) -> str | None:
+        """Why the flight left the range the model was fitted on, or None."""
+        out = body.outside()
+        if out < 0:
+            return None
+        r = self.reduced
+        return (f"modal coordinate {out} = {body.z[out]:.4g} left the range the reduced model was fitted on "
+                f"[{r.z_lo[out]:.4g}, {r.z_hi[out]:.4g}] (sim.reduced.range_margin x the snapshots')")
+
+
 class Simulator:
     def __init__(self, drone: Drone, sim_cfg: SimConfig, noise_cfg: NoiseConfig, seed: int = 0, effects=None,
                  draws: bool = True):
@@ -72,17 +169,15 @@ class Simulator:
         self._push = [e for e in self.effects if overrides(e, "body_forces")]
         self._sense = [e for e in self.effects if overrides(e, "sense")]
         fem, c, n = self.fem, self.cfg, self.noise
-        self.reduced = self._reduced_model() if getattr(c, "model", "full") == "reduced" else None
+        # the one place the two models part: everything below asks self.model
+        self.model = _Reduced(self, self._reduced_model()) if getattr(c, "model", "full") == "reduced" else _Full(self)
+        self.reduced = self.model.reduced   # the reduced model, or None (the privileged controller reads it)
         self.scaling = mass_scaling(fem, c.mass_scaling, default_cache_dir())
         if c.mass_scaling > 0 and self.scaling.added is None:
             log.warning(f"sim.mass_scaling = {c.mass_scaling:g}: no step gain for drone {drone.name} within this "
                         f"budget (the first rung, x1.05, needs more added mass); running unscaled")
         inertia = fem.mass if self.scaling.added is None else fem.mass + self.scaling.added
-        if self.reduced is not None:
-            from sdexp.sim.reduced.body import stable_substep as reduced_substep
-            dt_stable = reduced_substep(self.reduced, c.stability_safety)
-        else:
-            dt_stable = stable_substep(fem, c.stability_safety, mass=inertia)
+        dt_stable = self.model.stable_substep(c.stability_safety, inertia)
         if not (np.isfinite(dt_stable) and dt_stable > 0):
             raise UserError(f"drone {drone.name}: no stable explicit substep for its mesh (largest eigenvalue of "
                             f"M^-1 K not finite and positive); change drone.mesh (edge_length / layers)")
@@ -120,21 +215,7 @@ class Simulator:
 
     # -------------------------------------------------------------------------------- state
     def _new_body(self) -> None:
-        c = self.cfg
-        if self.reduced is not None:
-            from sdexp.sim.reduced.body import ReducedBody
-            self.body = ReducedBody(self.reduced, c.precision)
-            self.body.pushed = bool(self._push)
-            self._imus = replace(self.drone.imus, idx=self.reduced.imu_idx)
-            self.t = 0.0
-            self.failure = None
-            self.applied = np.zeros(self.drone.num_rotors)
-            self._queue = deque([np.zeros(self.drone.num_rotors)] * self._delay_steps)
-            return
-        boxes = list(c.obstacles)
-        self.body = Body(self.fem, self.threads, self.drone.rotors, c.ground,
-                         [list(b.min) for b in boxes] or None, [list(b.max) for b in boxes] or None,
-                         c.friction, precision=c.precision, added_mass=self.scaling.added)
+        self.body = self.model.body()
         self.t = 0.0
         self.failure: Failure | None = None
         self.applied = np.zeros(self.drone.num_rotors)
@@ -147,10 +228,7 @@ class Simulator:
         gets the same draws whatever ran before."""
         self._new_body()
         if position is not None:
-            if self.reduced is not None:
-                self.body.translate(np.asarray(position, dtype=float))
-            else:
-                self.body.x += np.asarray(position, dtype=float)
+            self.model.translate(self.body, np.asarray(position, dtype=float))
         self.flight = self.flight + 1 if flight is None else int(flight)
         if self._start:
             rng = np.random.default_rng([abs(int(self.seed)), self.flight]) if self.draws else None
@@ -166,15 +244,8 @@ class Simulator:
         and the actuation chain (output delay, effect states such as motor lag) replayed with the
         past commands ``history`` (oldest first) without moving the body. Effects keep their
         flight's draws (a gust sequence is a function of time) and only ``reset``."""
-        from sdexp.sensing.rotations import quat_from_matrix
         self._new_body()
-        if self.reduced is not None:
-            self.body.set_full(x, v)
-        else:
-            self.body.x[:] = x
-            self.body.v[:] = v
-        if rotation is not None and self.drone.dim == 3 and self.reduced is None:
-            self.body.set_rotation(quat_from_matrix(np.asarray(rotation)))
+        self.model.place(self.body, x, v, rotation)
         self.t = float(t)
         for e in self.effects:   # after the state is set: an effect may start from it
             e.reset(self)
@@ -199,11 +270,8 @@ class Simulator:
         return self.body.v
 
     def readings(self, noisy: bool = True) -> Readings:
-        if self.reduced is not None:   # the IMU patches' nodes only, not the whole mesh
-            x, v, _ = self.body.sensor_nodes()
-            r = read_imus(self.t, x, v, self._imus)
-        else:
-            r = read_imus(self.t, self.body.x, self.body.v, self.drone.imus)
+        x, v = self.model.nodes(self.body)
+        r = read_imus(self.t, x, v, self.model.imus)
         for e in self._sense:  # a sensor's systematic error is part of what it reads
             r = e.sense(r, self)
         return add_noise(r, self.noise, self.rng) if noisy else r
@@ -246,23 +314,18 @@ class Simulator:
         return cmd
 
     def _advance(self, thrust: np.ndarray) -> None:
-        body = self.body
-        # the last sane state, kept for the readings after a failure (the reduced body's is its
-        # frame and coordinates; the full one's is read as any Body's, the bitwise test's old one too)
-        before = body.copy_state() if self.reduced is not None else (body.x.copy(), body.v.copy())
+        body, model = self.body, self.model
+        before = model.save(body)   # the last sane state, kept for the readings after a failure
         inverted, vmax2 = body.run(self.n_sub, self.dt, thrust, self.damping, self.cfg.gravity,
                                    self.drone.deformation_damping)
         self.t += self.cfg.control_dt
         reason = None
-        # the reduced model's extent is bounded by its range check (its mesh is not rebuilt a step)
-        size = extent(body.x) if self.reduced is None else (0.0 if np.all(np.isfinite(body.z)) else np.nan)
-        out = body.outside() if self.reduced is not None else -1   # its range first: what follows, follows from it
+        size = model.size(body)
+        left = model.left_range(body)   # its range first: what follows, follows from it
         if not (np.isfinite(vmax2) and np.isfinite(size)):
             reason, detail = "non_finite", "positions or velocities are not finite"
-        elif out >= 0:
-            reason, detail = "left_reduced_range", (
-                f"modal coordinate {out} = {body.z[out]:.4g} left the range the reduced model was fitted on "
-                f"[{self.reduced.z_lo[out]:.4g}, {self.reduced.z_hi[out]:.4g}] (sim.reduced.range_margin x the snapshots')")
+        elif left is not None:
+            reason, detail = "left_reduced_range", left
         elif inverted > 0:
             reason, detail = "inverted_element", f"{inverted} elements inverted"
         elif vmax2 > self.cfg.max_speed ** 2:
@@ -274,7 +337,4 @@ class Simulator:
             if reason == "left_reduced_range":
                 log.warning(f"sim.model = reduced, drone {self.drone.name}: the flight left the reduced model's "
                             f"validated range at t = {self.t:.2f} s ({detail}); ended as a failure")
-            if self.reduced is not None:
-                body.restore(before)
-            else:
-                body.x[:], body.v[:] = before
+            model.restore(body, before)
