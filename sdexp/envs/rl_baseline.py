@@ -17,7 +17,8 @@ is scored on the simulator it learned from. ``data.sim_model=null`` learns on th
 **Scored** per episode: survived (no loss of control, blow-up or controller failure), the final
 distance to the goal and whether it is within the fleet's tolerance (``sdexp.eval.fleet.tolerance``:
 hover 0.1 m; reach 10% of the trip), the return, and the training's wall time to that budget
-(ours': identification, data and nets, 0 where the cache held them).
+(ours': identification, data and nets, 0 where the cache held them), in CPU seconds of the job's
+process: one core each, so its wall time on an idle core, whatever else shares the machine.
 
 Jobs (``jobs/``): one per task and seed for the agent (its checkpoints ``<task>_seed<s>_<algo>/
 <budget>.zip`` and its scores, ``<task>_seed<s>_<algo>.json``) and one per seed for ours; a
@@ -124,12 +125,12 @@ def train_agent(cfg, task: str, seed: int, p, jobs_dir: str, key: str, report=No
 
     class Checkpoints(BaseCallback):
         def _on_training_start(self) -> None:
-            self.t0 = time.perf_counter()
+            self.t0 = time.process_time()
 
         def _on_step(self) -> bool:
             n = self.num_timesteps
             if n in budgets:
-                walls[n] = time.perf_counter() - self.t0
+                walls[n] = time.process_time() - self.t0
                 path = folder / f"{n}.zip"
                 atomic_write(path, self.model.save)   # its temporary name has a suffix: SB3 adds none
             if report is not None and n % max(1, budgets[-1] // REPORTS) == 0:
@@ -139,9 +140,9 @@ def train_agent(cfg, task: str, seed: int, p, jobs_dir: str, key: str, report=No
     env = Monitor(_env(learn_cfg, task))
     algo = _algorithm(p.algorithm)
     agent = algo("MlpPolicy", env, seed=int(seed), device="cpu", verbose=0)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     agent.learn(total_timesteps=budgets[-1], callback=Checkpoints())
-    train_seconds = time.perf_counter() - t0
+    train_seconds = time.process_time() - t0
     env.close()
 
     scored = _env(scored_cfg, task)
@@ -171,9 +172,9 @@ def fly_ours(cfg, seed: int, p, jobs_dir: str, key: str, report=None) -> dict:
         env = _env(scored_cfg, task)
         if report is not None:
             report(f"ours seed {seed}: {task}" + (" (identifying: data and nets)" if identify_seconds is None else ""))
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         policy = OursPolicy(env, progress=False)
-        identify_seconds = time.perf_counter() - t0 if identify_seconds is None else identify_seconds
+        identify_seconds = time.process_time() - t0 if identify_seconds is None else identify_seconds
         rows += [{"task": task, "seed": int(seed), "controller": "ours", "transitions": int(cfg.data.samples),
                   "train_seconds": identify_seconds, **r}
                  for r in score(env, policy, seed, int(p.episodes), reset=policy.reset)]
