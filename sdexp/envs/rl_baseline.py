@@ -121,7 +121,7 @@ def train_agent(cfg, task: str, seed: int, p, jobs_dir: str, key: str, report=No
     folder = _checkpoints(Path(jobs_dir), task, seed, p.algorithm)
     folder.mkdir(parents=True, exist_ok=True)
     name = f"{task} seed {seed}: {p.algorithm}"
-    walls: dict[int, float] = {}
+    cpu: dict[int, float] = {}   # CPU seconds of training at each budget
 
     class Checkpoints(BaseCallback):
         def _on_training_start(self) -> None:
@@ -130,7 +130,7 @@ def train_agent(cfg, task: str, seed: int, p, jobs_dir: str, key: str, report=No
         def _on_step(self) -> bool:
             n = self.num_timesteps
             if n in budgets:
-                walls[n] = time.process_time() - self.t0
+                cpu[n] = time.process_time() - self.t0
                 path = folder / f"{n}.zip"
                 atomic_write(path, self.model.save)   # its temporary name has a suffix: SB3 adds none
             if report is not None and n % max(1, budgets[-1] // REPORTS) == 0:
@@ -153,7 +153,7 @@ def train_agent(cfg, task: str, seed: int, p, jobs_dir: str, key: str, report=No
         policy = algo.load(folder / f"{n}.zip", device="cpu")
         act = lambda obs: policy.predict(obs, deterministic=True)[0]
         rows += [{"task": task, "seed": int(seed), "controller": p.algorithm, "transitions": n,
-                  "train_seconds": walls[n], **r} for r in score(scored, act, seed, int(p.episodes))]
+                  "train_seconds": cpu[n], **r} for r in score(scored, act, seed, int(p.episodes))]
     result = {"key": key, "rows": rows, "train_seconds": train_seconds,
               "steps_per_second": budgets[-1] / train_seconds}
     _write(Path(jobs_dir) / f"{task}_seed{seed}_{p.algorithm}.json", result)
