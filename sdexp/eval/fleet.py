@@ -445,13 +445,15 @@ def fly_job(cfg, name: str, seed: int, p: FleetParams, path: str, report=None) -
               "recipe": recipe_text(p.recipes.get(name)), "rows": [],
               "physics": None, "error": None, "seconds": {}}
     phase, t0 = starting("learning (data and nets)"), time.perf_counter()
+    # the learned model's columns where a controller flies on it (no data or nets otherwise)
+    learned = any(c in LEARNED for c in p.controllers)
     try:
         setup = Setup(job_cfg, progress=False)
+        if learned:
+            setup.dyn   # identified here (Setup is lazy): the phase's seconds are the learning's
         result["seconds"]["learning"] = time.perf_counter() - t0
         phase = starting("physics")
         t1 = time.perf_counter()
-        # the learned model's columns where a controller flies on it (no data or nets otherwise)
-        learned = any(c in LEARNED for c in p.controllers)
         result["physics"] = {**physics_of(setup.drone, job_cfg.sim, setup.trained if learned else None,
                                           cache_dir=job_cfg.cache_dir), **(model_at_hover(setup) if learned else {})}
         if learned and setup.data.meta.get("joined"):   # data.aggregation: what each round added
