@@ -651,7 +651,8 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
                seeds: int) -> None:
     """Drones x tasks, one panel per controller: colour = the median error over the seeds that
     survived, against the task's tolerance (green 0, yellow at it, red at twice it); the text
-    the median and how many seeds survived; a grey cell with a cross = no seed survived."""
+    the median, the seeds within the tolerance and those that survived; a pair that flies (every
+    seed within) framed in black; a grey cell with a cross = no seed survived."""
     from matplotlib.colors import LinearSegmentedColormap
 
     from sdexp.figures import pyplot, save_figure
@@ -673,10 +674,14 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
                 elif len(ok):
                     med = float(ok["primary_value"].median())
                     colour = cmap(min(med / float(ok["tolerance"].iloc[0]), 2.0) / 2.0)
-                    text = f"{med:.2g} {UNITS[ok['primary'].iloc[0]]}\n{len(ok)}/{seeds}"
+                    within = int((sel["outcome"] == "within").sum())
+                    text = f"{med:.2g} {UNITS[ok['primary'].iloc[0]]}\n{within}/{seeds} within, {len(ok)} up"
                 else:
                     colour, text = "#bdbdbd", f"x\n0/{seeds}"
+                flies = len(sel) == seeds and (sel["outcome"] == "within").all()
                 ax.add_patch(plt.Rectangle((j, i), 1, 1, facecolor=colour, edgecolor="white", lw=2))
+                if flies:   # inside the white grid lines
+                    ax.add_patch(plt.Rectangle((j + 0.04, i + 0.06), 0.92, 0.88, fill=False, edgecolor="black", lw=1.5))
                 ax.text(j + 0.5, i + 0.5, text, ha="center", va="center", fontsize=8,
                         fontweight="bold" if not len(ok) else "normal")
         ax.set_xticks(np.arange(len(tasks)) + 0.5)
@@ -688,10 +693,10 @@ def fleet_plot(table: pd.DataFrame, drones: list[str], tasks: list[str], control
         for s in ax.spines.values():
             s.set_visible(False)
     fig.suptitle(f"the fleet over {seeds} seeds: median error of the flights that survived "
-                 "(green 0, yellow = the task's tolerance, red 2x), survived/seeds; grey x: none survived; "
-                 "beyond the body: a deform target under its tolerance, not flown",
-                 fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1, 0.95))
+                 "(green 0, yellow = the task's tolerance, red 2x), seeds within the tolerance and seeds up;\nframed: "
+                 "flies (every seed within); grey x: none survived; beyond the body: a deform target under its "
+                 "tolerance, not flown", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.92))
     save_figure(fig, path, dpi=110)
 
 

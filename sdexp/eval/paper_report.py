@@ -397,12 +397,22 @@ def _privileged(results: Path, jobs) -> tuple[object, set]:
     return pd.read_csv(folder / "fleet.csv"), changed
 
 
-def _side(privileged, changed: set, drone: str, task: str, physics_rule: str) -> str:
-    """Which side holds a pair ours does not fly: physics where the body has no static hover (the
-    design rule's statics); learning where the privileged reduced-model LQR flies it in every seed
-    of its run; open where neither says."""
+def _side(privileged, changed: set, drone: str, task: str, physics_rule: str, share: float = np.nan) -> str:
+    """Which side holds a pair ours does not fly: physics where the body has no static hover within
+    its rotors' range (the design rule's statics: the hold fails, or it needs more than Tmax; a
+    hover within the range but past the rule's margin is no such proof, only said); learning where
+    the privileged reduced-model LQR flies it in every seed of its run; open where neither says."""
+    from sdexp.sim.rigid.statics import RULE_MAX_SHARE
+    margin = ""
     if physics_rule not in ("", "holds", "nan"):
-        return f"physics: no static hover ({physics_rule})"
+        if not share <= 1.0:   # NaN too: the hold itself failed
+            return f"physics: no static hover ({physics_rule})"
+        margin = f" (its static hover needs {share:.2f} of Tmax, past the design rule's {RULE_MAX_SHARE:g} margin)"
+    return _privileged_side(privileged, changed, drone, task) + margin
+
+
+def _privileged_side(privileged, changed: set, drone: str, task: str) -> str:
+    """Learning where the privileged reduced-model LQR flies the pair in every seed of its run, else open."""
     if privileged is None or drone in changed:
         return "open: no privileged flight of this design" if privileged is not None else ""
     rows = privileged[(privileged["drone"] == drone) & (privileged["task"] == task)
@@ -525,14 +535,16 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     if misses:
         privileged, changed = _privileged(results, jobs)
         lines += ["Why each pair of the paper's designs that does not fly misses (ours' flights over the seeds), and "
-                  "which side holds it: physics (no static hover, docs/designs.md), learning (the privileged "
+                  "which side holds it: physics (no static hover within the rotors' range, docs/designs.md), learning (the privileged "
                   "reduced-model LQR of `results/fleet_reduced_lqr/` flies it in every seed), or open:\n"]
-        lines += [f"- {d} {t}: {_why(table, d, t, rules.get(d, ''), _side(privileged, changed, d, t, rules.get(d, '')))}"
+        lines += [f"- {d} {t}: {_why(table, d, t, rules.get(d, ''), _side(privileged, changed, d, t, rules.get(d, ''), physics.loc[d].get('static_hover_share', np.nan)))}"
                   for d, t in misses] + [""]
     job_time = ""
-    if {"learning_seconds", "flights_seconds"} <= set(jobs.columns):
+    if {"learning_seconds", "physics_seconds", "flights_seconds"} <= set(jobs.columns):
         job_time = (f"; job time {jobs['learning_seconds'].sum() / 3600:.1f} h learning (data and nets; "
-                    f"near 0 when they came from the caches), {jobs['flights_seconds'].sum() / 3600:.1f} h flying")
+                    f"near 0 when they came from the caches), {jobs['physics_seconds'].sum() / 3600:.1f} h the "
+                    f"bodies' physics (in jobs flown before 5ec707e, the learning too: it began there), "
+                    f"{jobs['flights_seconds'].sum() / 3600:.1f} h flying")
     if beyond:
         lines += [f"Beyond the paper: {sum(every[p] for p in beyond)} of {len(beyond)} pairs fly in every seed "
                   f"({sum(median[p] for p in beyond)} by the median).", ""]
