@@ -472,6 +472,9 @@ def _fleet_hours(folder: Path, metrics: dict) -> str:
     return f"{flew / 3600:.1f} h" + (f" (and {filled / 60:.0f} min of diagnostics filled in later from the caches)" if filled >= 60 else "")
 
 
+BEYOND_PAPER = "fleet_beyond_paper"   # sdexp's own designs' fleet, where flown apart from the paper's
+
+
 def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     """results/fleet/: every drone x task x seed in one run (sdexp.eval.fleet), its fleet.csv and
     physics.csv. A pair (drone, task) flies when ours ends within the task's tolerance in every
@@ -486,16 +489,21 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
     if not rs:
         return [], [(claim, "", "", NOT_RUN, "")]
     folder, config = rs[0].folder, rs[0].config
-    for name in ("fleet.csv", "physics.csv"):
-        if not (folder / name).is_file():
-            raise UserError(f"{folder / name} is missing: {committed.FIX}")
-    table = pd.read_csv(folder / "fleet.csv")
-    jobs = pd.read_csv(folder / "physics.csv")
+    # the paper's designs in results/fleet; sdexp's own, where flown apart, in results/fleet_beyond_paper
+    folders = [folder] + ([results / BEYOND_PAPER] if (results / BEYOND_PAPER).exists() else [])
+    for f in folders:
+        committed.load(f, "fleet")   # whole, or a clear error
+        for name in ("fleet.csv", "physics.csv"):
+            if not (f / name).is_file():
+                raise UserError(f"{f / name} is missing: {committed.FIX}")
+    table = pd.concat([pd.read_csv(f / "fleet.csv") for f in folders], ignore_index=True)
+    jobs = pd.concat([pd.read_csv(f / "physics.csv") for f in folders], ignore_index=True)
     physics = jobs.groupby("drone", sort=False).mean(numeric_only=True)
     rules = jobs.groupby("drone", sort=False)["design_rule"].first().astype(str) if "design_rule" in jobs else pd.Series(dtype=str)
     params = config["experiment"]["params"]
     tasks, seeds = list(params["tasks"]), len(params["seeds"])
     drones = list(dict.fromkeys(table["drone"]))
+    seeds_of = table.groupby("drone")["seed"].nunique()   # a folder's seeds: each drone's own count
     groups = [("The paper's designs", [d for d in drones if d in PAPER_DESIGNS]),
               ("Beyond the paper (sdexp's 2D designs; the paper trains no controller for them)",
                [d for d in drones if d not in PAPER_DESIGNS])]
@@ -525,7 +533,7 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
         for drone in names:
             row = []
             for task in tasks:
-                every[(drone, task)], median[(drone, task)], text = _fleet_cell(table, drone, task, seeds)
+                every[(drone, task)], median[(drone, task)], text = _fleet_cell(table, drone, task, int(seeds_of[drone]))
                 row.append(text)
             lines.append(f"| {drone} | " + " | ".join(row) + " | " + " | ".join(_physics_cells(physics, drone)) + " |")
         lines.append("")
@@ -546,7 +554,8 @@ def fleet_section(results: Path) -> tuple[list[str], list[tuple]]:
                     f"bodies' physics (in jobs flown before 5ec707e, the learning too: it began there), "
                     f"{jobs['flights_seconds'].sum() / 3600:.1f} h flying")
     if beyond:
-        lines += [f"Beyond the paper: {sum(every[p] for p in beyond)} of {len(beyond)} pairs fly in every seed "
+        where = f" (`results/{BEYOND_PAPER}/`)" if len(folders) > 1 else ""
+        lines += [f"Beyond the paper{where}: {sum(every[p] for p in beyond)} of {len(beyond)} pairs fly in every seed "
                   f"({sum(median[p] for p in beyond)} by the median).", ""]
     lines += [f"The fleet's wall time: {_fleet_hours(folder, rs[0].metrics)} "
               f"on 2 cores{job_time}. More on each drone: docs/results.md, \"The fleet\".", ""]
