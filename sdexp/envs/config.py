@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Mapping, Sequence
 
-from sdexp.errors import UserError, one_line
+from sdexp.errors import UserError
 
 
 def override_list(drone: str, overrides: Sequence[str] | Mapping[str, object] | None) -> list[str]:
@@ -35,24 +35,15 @@ def _value(v) -> str:
 def compose_config(drone: str, overrides=None):
     """The typed config (sdexp.config.Config) of ``drone`` with ``overrides``; bad input is a
     UserError naming the override or key (Hydra's own messages, on one line)."""
-    from hydra import compose, initialize_config_module
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
     from sdexp import conf
     from sdexp.config import validate
-    from sdexp.eval.run import simulator_checks, typed
+    from sdexp.eval.run import compose_overrides, simulator_checks, typed
 
     names = conf.names("drone")
     if drone not in names:
         raise UserError(f"drone = {drone!r} is unknown: choose one of {', '.join(names)}")
     args = override_list(drone, overrides)
-    try:
-        # initialize_config_module restores Hydra's global state on exit: safe inside a run too
-        with initialize_config_module(config_module=conf.MODULE, version_base="1.3"):
-            cfg = compose(config_name="config", overrides=args)
-    except (HydraException, OmegaConfBaseException) as err:
-        raise UserError(f"overrides {args[1:]}: {one_line(err)}") from None
+    cfg = compose_overrides(args, f"overrides {args[1:]}")
     validate(cfg)
     simulator_checks(cfg)
     return typed(cfg)

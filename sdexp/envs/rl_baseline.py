@@ -40,6 +40,7 @@ import numpy as np
 import pandas as pd
 
 from sdexp.errors import UserError
+from sdexp.eval.fleet import job_progress, write_job
 from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
@@ -156,7 +157,7 @@ def train_agent(cfg, task: str, seed: int, p, jobs_dir: str, key: str, report=No
                   "train_seconds": cpu[n], **r} for r in score(scored, act, seed, int(p.episodes))]
     result = {"key": key, "rows": rows, "train_seconds": train_seconds,
               "steps_per_second": budgets[-1] / train_seconds}
-    _write(Path(jobs_dir) / f"{task}_seed{seed}_{p.algorithm}.json", result)
+    write_job(Path(jobs_dir) / f"{task}_seed{seed}_{p.algorithm}.json", result)
     if report is not None:
         report(1)
     return result
@@ -179,16 +180,10 @@ def fly_ours(cfg, seed: int, p, jobs_dir: str, key: str, report=None) -> dict:
                   "train_seconds": identify_seconds, **r}
                  for r in score(env, policy, seed, int(p.episodes), reset=policy.reset)]
     result = {"key": key, "rows": rows, "train_seconds": identify_seconds}
-    _write(Path(jobs_dir) / f"ours_seed{seed}.json", result)
+    write_job(Path(jobs_dir) / f"ours_seed{seed}.json", result)
     if report is not None:
         report(1)
     return result
-
-
-def _write(path: Path, result: dict) -> None:
-    from sdexp.files import atomic_write
-    text = json.dumps(result, indent=1, default=float)
-    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def _done(path: Path, key: str) -> dict | None:
@@ -237,7 +232,7 @@ def run(run: Run) -> dict:
              f"{len(done)} of {len(done) + len(todo)} jobs done before")
     t0 = time.perf_counter()
     with Phase("rl_baseline jobs (agents, ours)", total=len(todo), unit="jobs") as bar:
-        report = _progress(bar)
+        report = job_progress(bar)   # the fleet's: a phase shown, a job done counted
         workers = max(1, min(int(p.workers), len(todo)))
         if workers == 1:
             done += [fn(*args, report=report) for fn, args in todo]
@@ -259,15 +254,6 @@ def run(run: Run) -> dict:
 def _call(fn, args, report=None):
     """run_spawned's task: a job function and its arguments."""
     return fn(*args, report=report)
-
-
-def _progress(bar):
-    def report(item) -> None:
-        if isinstance(item, str):
-            bar.set_postfix(now=item)
-        else:
-            bar.update(item)
-    return report
 
 
 def metrics(table: pd.DataFrame, p) -> dict:

@@ -29,10 +29,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
-from sdexp.errors import UserError
 from sdexp.eval.run import Run
 
 log = logging.getLogger(__name__)
@@ -45,20 +43,10 @@ _PROBE = ("import json, numpy, threadpoolctl; print(json.dumps([i.get('architect
 
 def check(run: Run) -> None:
     """The fleet's overrides compose (a typo is named before any fleet starts)."""
-    from hydra import compose, initialize_config_module
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
+    from sdexp.eval.run import compose_overrides, preflight, typed
 
-    from sdexp import conf
-    from sdexp.errors import one_line
-    from sdexp.eval.run import preflight, typed
-
-    args = ["experiment=fleet", *ONE_CORE, *run.params.overrides]
-    try:
-        with initialize_config_module(config_module=conf.MODULE, version_base="1.3"):
-            cfg = compose(config_name="config", overrides=args)
-    except (HydraException, OmegaConfBaseException) as err:
-        raise UserError(f"experiment.params.overrides = {list(run.params.overrides)!r}: {one_line(err)}") from None
+    cfg = compose_overrides(["experiment=fleet", *ONE_CORE, *run.params.overrides],
+                            f"experiment.params.overrides = {list(run.params.overrides)!r}")
     preflight(cfg)
     typed(cfg)
 

@@ -96,6 +96,20 @@ def known_names(kind: str) -> list[str]:
     return conf.names(kind)
 
 
+def compose_overrides(args: list[str], what: str) -> DictConfig:
+    """The config composed from sdexp.conf with the Hydra overrides ``args`` (unchecked); one that
+    does not compose is a UserError naming ``what`` with Hydra's own message on one line."""
+    from hydra import compose, initialize_config_module
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+    try:
+        # initialize_config_module restores Hydra's global state on exit: safe inside a run too
+        with initialize_config_module(config_module=conf.MODULE, version_base="1.3"):
+            return compose(config_name="config", overrides=list(args))
+    except (HydraException, OmegaConfBaseException) as err:
+        raise UserError(f"{what}: {one_line(err)}") from None
+
+
 def preflight(cfg: DictConfig) -> None:
     """Every check a composed config gets before anything is written: the schema and ranges
     (config.validate), what the simulator needs of it (sim.checks), the names its params give."""
